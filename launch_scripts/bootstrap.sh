@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Creates (or refreshes) the project's venv with pinned versions, then prints its python.
+# Sourced by demo.sh and run_tests.sh; safe to run by hand.  Re-installs only when the
+# requirement files change, so a second run costs a second.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+venv="${MDSS_VENV:-$root/.venv}"
+
+die() { echo "mdss bootstrap: $*" >&2; exit 1; }
+
+python_ok() {  # python >= 3.11 with venv and pip available
+  "$1" -c 'import sys, venv, ensurepip; sys.exit(0 if sys.version_info >= (3, 11) else 1)' >/dev/null 2>&1
+}
+
+find_python() {
+  local c
+  if [ -n "${MDSS_PYTHON:-}" ]; then
+    python_ok "$MDSS_PYTHON" || die "MDSS_PYTHON=$MDSS_PYTHON is not a Python >= 3.11 with venv/ensurepip"
+    echo "$MDSS_PYTHON"; return
+  fi
+  for c in python3.11 python3.12 python3.13 python3; do
+    if command -v "$c" >/dev/null 2>&1 && python_ok "$(command -v "$c")"; then command -v "$c"; return; fi
+  done
+  if command -v pyenv >/dev/null 2>&1; then
+    for v in $(pyenv versions --bare 2>/dev/null | grep -E '^3\.(11|12|13)(\.|$)' | sort -V); do
+      c="$(pyenv root)/versions/$v/bin/python3"
+      if [ -x "$c" ] && python_ok "$c"; then echo "$c"; return; fi
+    done
+  fi
+  die "no Python >= 3.11 with the venv and ensurepip modules found on PATH or in pyenv.
+  Install one (Debian/Ubuntu: apt-get install python3.11 python3.11-venv) or set MDSS_PYTHON=/path/to/python3.11"
+}
+
+stamp_of() { cat "$root/requirements.txt" "$root/requirements.lock.txt" "$root/setup.py" | sha256sum | cut -c1-16; }
+
+want="$(stamp_of)"
+if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != "$want" ]; then
+  py="$(find_python)"
+  if [ ! -x "$venv/bin/python" ]; then
+    echo "mdss bootstrap: creating $venv with $py ($("$py" --version 2>&1))" >&2
+    "$py" -m venv "$venv" || die "could not create a venv with $py"
+  fi
+  echo "mdss bootstrap: installing pinned requirements (first time takes a few minutes)" >&2
+  "$venv/bin/python" -m pip install -q --upgrade pip >&2 || die "pip upgrade failed (no access to the Python package index?)"
+  "$venv/bin/python" -m pip install -q -r "$root/requirements.txt" -c "$root/requirements.lock.txt" >&2 \
+    || die "installing requirements.txt failed; see pip's message above"
+  "$venv/bin/python" -m pip install -q --no-deps -e "$root" >&2 || die "installing mdss_ros itself failed"
+  echo "$want" > "$venv/.mdss_stamp"
+fi
+"$venv/bin/python" -c 'import rclpy, numpy, scipy, numba' >/dev/null 2>&1 \
+  || die "the venv at $venv is broken (import rclpy/numpy/scipy/numba failed); delete it and run again"
+echo "$venv/bin/python"

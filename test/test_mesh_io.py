@@ -1,0 +1,115 @@
+"""Mesh files and fTetWild: round trips, surface import, clean cwd, clear errors."""
+import meshio
+import numpy as np
+import pytest
+import trimesh
+
+from mdss_ros.errors import MeshError
+from mdss_ros.mesh import TetMesh, box, boundary_faces, load_mesh, save_mesh, tetrahedralize
+from mdss_ros.mesh.tetmesh import signed_volumes
+
+
+def _assert_closed(mesh):
+    faces = boundary_faces(mesh.tets)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    _, counts = np.unique(np.sort(edges, axis=1), axis=0, return_counts=True)
+    assert np.all(counts == 2)
+
+
+@pytest.mark.parametrize("ext", [".vtu", ".msh", ".vtk"])
+def test_save_load_round_trip_is_exact(tmp_path, ext):
+    mesh = box(size=(0.3, 0.2, 0.1), cell=0.05, origin=(0.1, 0.2, 0.3))
+    path = tmp_path / f"body{ext}"
+    save_mesh(path, mesh)
+    back = load_mesh(path)
+    assert np.array_equal(back.vertices, mesh.vertices)
+    assert np.array_equal(back.tets, mesh.tets)
+
+
+def test_load_reorients_tets_and_drops_unreferenced_vertices(tmp_path):
+    mesh = box(size=(0.2, 0.2, 0.2), cell=0.1)
+    flipped = mesh.tets[:, [0, 2, 1, 3]]
+    points = np.vstack([mesh.vertices, [[9.0, 9.0, 9.0]]])  # e.g. a gmsh geometry point
+    path = tmp_path / "flipped.vtu"
+    cells = [("tetra", flipped), ("vertex", [[points.shape[0] - 1]])]
+    meshio.write(path, meshio.Mesh(points, cells))
+    back = load_mesh(path)
+    assert back.n_verts == mesh.n_verts
+    assert np.all(signed_volumes(back.vertices, back.tets) > 0)
+    assert signed_volumes(back.vertices, back.tets).sum() == pytest.approx(0.008, rel=1e-12)
+
+
+def test_load_obj_surface_is_tetrahedralised_in_a_clean_cwd(tmp_path, monkeypatch):
+    surface = trimesh.creation.box(extents=(0.4, 0.3, 0.2))
+    path = tmp_path / "part.obj"
+    surface.export(path)
+    workdir = tmp_path / "cwd"
+    workdir.mkdir()
+    monkeypatch.chdir(workdir)
+    mesh = load_mesh(path, edge_length=0.1)
+    vol = signed_volumes(mesh.vertices, mesh.tets)
+    assert vol.min() > 0
+    # fTetWild keeps the surface within its envelope (1e-3 of the bbox
+    # diagonal), not exactly: flat faces may ripple by ~1e-6 here.
+    assert vol.sum() == pytest.approx(0.024, rel=1e-4)
+    assert np.allclose(mesh.vertices.min(axis=0), [-0.2, -0.15, -0.1], atol=5e-4)
+    _assert_closed(mesh)
+    assert list(workdir.iterdir()) == []
+
+
+def test_tetrahedralize_accepts_inside_out_surface(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    surface = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    mesh = tetrahedralize(surface.vertices, surface.faces[:, ::-1], edge_length=0.5)
+    assert isinstance(mesh, TetMesh)
+    assert signed_volumes(mesh.vertices, mesh.tets).min() > 0
+    assert signed_volumes(mesh.vertices, mesh.tets).sum() == pytest.approx(1.0, rel=1e-4)
+    used = np.zeros(mesh.n_verts, bool)
+    used[mesh.tets.ravel()] = True
+    assert used.all()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_non_watertight_obj_is_rejected(tmp_path):
+    surface = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    # Drop both triangles of one square face (the two faces sharing normal -x).
+    keep = ~np.isclose(surface.face_normals[:, 0], -1.0)
+    assert np.count_nonzero(~keep) == 2
+    opened = trimesh.Trimesh(surface.vertices, surface.faces[keep], process=False)
+    opened.export(tmp_path / "open.obj")
+    with pytest.raises(MeshError, match=r"open\.obj.*not watertight: 4 edges"):
+        load_mesh(tmp_path / "open.obj")
+
+
+def test_tetrahedralize_rejects_bad_arrays():
+    surface = trimesh.creation.box()
+    v = surface.vertices.copy()
+    v[0, 1] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        tetrahedralize(v, surface.faces)
+    with pytest.raises(MeshError, match="outside"):
+        tetrahedralize(surface.vertices, surface.faces + 100)
+    with pytest.raises(MeshError, match="edge_length"):
+        tetrahedralize(surface.vertices, surface.faces, edge_length=-1.0)
+
+
+def test_load_errors_name_the_problem(tmp_path):
+    with pytest.raises(MeshError, match="not found"):
+        load_mesh(tmp_path / "missing.vtu")
+    with pytest.raises(MeshError, match="unsupported mesh extension '.step'"):
+        load_mesh(tmp_path / "part.step")
+    garbage = tmp_path / "garbage.vtu"
+    garbage.write_text("not a mesh")
+    with pytest.raises(MeshError, match="garbage.vtu: cannot read"):
+        load_mesh(garbage)
+    tris_only = tmp_path / "tris.vtu"
+    meshio.write(tris_only, meshio.Mesh(np.eye(3), [("triangle", [[0, 1, 2]])]))
+    with pytest.raises(MeshError, match=r"no linear 'tetra' cells \(found \['triangle'\]\)"):
+        load_mesh(tris_only)
+    degenerate = tmp_path / "flat.vtu"
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    meshio.write(degenerate, meshio.Mesh(flat, [("tetra", [[0, 1, 2, 3]])]))
+    with pytest.raises(MeshError, match="flat.vtu: 1 degenerate"):
+        load_mesh(degenerate)
+    with pytest.raises(MeshError, match="cannot save"):
+        save_mesh(tmp_path / "out.obj", box(size=(1, 1, 1), cell=1.0))
