@@ -1,0 +1,209 @@
+"""`mdss` command line (DESIGN.md "Command line"). Each command prints what it did."""
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .scene import read_yaml
+
+
+def _parse_sets(items):
+    """--set model.modes=10 --set body.mesh.cell=0.02 -> {"model.modes": 10, ...} (values parsed as YAML)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise SystemExit(f"mdss: --set expects KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = read_yaml(v)
+    return out
+
+
+def _peak_rss_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _make_sim(args):
+    from .errors import MdssError
+    from .simulator import Simulator
+    try:
+        return Simulator(args.scene, overrides=_parse_sets(args.set) or None)
+    except MdssError as err:
+        raise SystemExit(f"mdss: {err}")
+
+
+def cmd_run(args):
+    from .timeline import TimelinePlayer
+    for opt, issue in (("mcap", "MCAP recording"), ("rrd", "rerun recording")):
+        if getattr(args, opt):
+            raise SystemExit(f"mdss run: --{opt}: {issue} is not built yet in this version")
+    t0 = time.perf_counter()
+    sim = _make_sim(args)
+    st = sim.stats()
+    print(f"mdss run: scene {sim.scene.name!r} ({sim.scene.source}): {st['kind']} model, "
+          f"{st['vertices']} vertices, {st['tets']} tets, {st['dofs']} DOFs, "
+          f"dt = {sim.dt:.6g} s, built in {time.perf_counter() - t0:.2f} s")
+    steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))
+    player = TimelinePlayer(sim.scene["timeline"])
+    step_ms = []
+    rest = sim.rest_positions()
+    report_every = max(1, steps // 10)
+    for k in range(steps):
+        for ev in player.apply_due(sim):
+            print(f"  t = {sim.time:7.3f} s  input {ev['topic']}: "
+                  f"{ {k2: v for k2, v in ev.items() if k2 not in ('t', 'topic')} }")
+        sim.step()
+        step_ms.append(sim.stats()["step_ms"])
+        x = sim.vertex_positions()
+        if not np.all(np.isfinite(x)):
+            raise SystemExit(f"mdss run: non-finite positions at step {k + 1} (t = {sim.time:.4f} s)")
+        if (k + 1) % report_every == 0 or k + 1 == steps:
+            disp = np.linalg.norm(x - rest, axis=1).max()
+            e = sim.energy()
+            print(f"  step {k + 1:6d}/{steps}  t = {sim.time:7.3f} s  max |u| = {disp:.5g} m  "
+                  f"E_total = {e['total']:.6g} J  step {step_ms[-1]:.2f} ms")
+    wall = time.perf_counter() - t0
+    summary = {
+        "scene": sim.scene.name, "kind": st["kind"], "steps": steps, "sim_time": sim.time,
+        "dofs": st["dofs"], "step_ms_median": float(np.median(step_ms)) if step_ms else None,
+        "max_displacement": float(np.linalg.norm(sim.vertex_positions() - rest, axis=1).max()),
+        "energy": sim.energy(), "wall_s": wall,
+    }
+    print(f"mdss run: done, {steps} steps to t = {sim.time:.3f} s in {wall:.2f} s wall "
+          f"(median step {summary['step_ms_median']:.2f} ms)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+        print(f"mdss run: summary written to {args.json}")
+    return 0
+
+
+def cmd_bench(args):
+    if args.fem_scaling:
+        return bench_fem_scaling(args)
+    if not args.scene:
+        raise SystemExit("mdss bench: give a SCENE or --fem-scaling")
+    t0 = time.perf_counter()
+    sim = _make_sim(args)
+    build_s = time.perf_counter() - t0
+    from .timeline import TimelinePlayer
+    player = TimelinePlayer(sim.scene["timeline"])
+    warm = min(3, args.steps)
+    rows = []
+    for k in range(warm + args.steps):
+        player.apply_due(sim)
+        sim.step()
+        if k >= warm:
+            rows.append(sim.stats())
+    keys = [k for k, v in rows[0].items() if k.endswith("_ms")]
+    med = {k: float(np.median([r[k] for r in rows])) for k in keys}
+    st = rows[-1]
+    result = {"scene": sim.scene.name, "kind": st["kind"], "dofs": st["dofs"], "domains": st["domains"],
+              "vertices": st["vertices"], "tets": st["tets"], "steps": args.steps,
+              "build_s": build_s, "median_ms": med, "peak_rss_mb": _peak_rss_mb()}
+    print(f"mdss bench: {sim.scene.name} ({st['kind']}), {st['dofs']} DOFs, {st['tets']} tets, "
+          f"{args.steps} steps after {warm} warm-up, build {build_s:.2f} s, peak RSS {result['peak_rss_mb']:.0f} MB")
+    for k in keys:
+        print(f"  {k[:-3]:>16s}: {med[k]:9.3f} ms median")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+        print(f"mdss bench: written {args.json}")
+    return 0
+
+
+def bench_fem_one(n_tets_target, iterations=5):
+    """Time the phases of one Newton iteration of the full-space solver on a clamped beam
+    of about n_tets_target tets (StVK). Runs in its own process so peak memory is its own."""
+    from .fem.backward_euler import BackwardEuler, NewtonSettings
+    from .fem.force_model import FEMForceModel
+    from .fem.materials import make_material
+    from .mesh import box, select_vertices
+    # Beam 4:1:1 with cubic cells split into 6 tets: 6 * 4n * n * n tets.
+    n = max(1, int(round((n_tets_target / 24.0) ** (1.0 / 3.0))))
+    t0 = time.perf_counter()
+    mesh = box(size=(4.0, 1.0, 1.0), cell=1.0 / n)
+    pinned = select_vertices(mesh.vertices, {"box": [[-1e-9, -1, -1], [1e-9, 2, 2]]})
+    mat = make_material({"model": "stvk", "young": 1e6, "poisson": 0.3, "density": 1000})
+    model = FEMForceModel(mesh.vertices, mesh.tets, mat, pinned)
+    build_s = time.perf_counter() - t0
+    integ = BackwardEuler(model, 1.0 / 90.0, NewtonSettings(max_iterations=1))
+    f_ext = model.vertex_mass[:, None] * np.array([0.0, 0.0, -9.81])
+    x, v = mesh.vertices.copy(), np.zeros_like(mesh.vertices)
+    x, v = integ.step(x, v, f_ext)  # JIT warm-up and first analysis
+    rows = []
+    for _ in range(iterations):
+        x, v = integ.step(x, v, f_ext)
+        rows.append(dict(integ.stats, **model.timings))
+    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0] if k.endswith("_ms")}
+    return {"tets": int(len(mesh.tets)), "vertices": int(len(mesh.vertices)), "dofs": int(model.n_free),
+            "nnz": int(model.pattern.nnz), "build_s": build_s, "solver": integ.solver.backend,
+            "median_ms": med, "newton_iteration_ms": med["assembly_ms"] + med["factor_ms"] + med["solve_ms"],
+            "peak_rss_mb": _peak_rss_mb(), "iterations": iterations}
+
+
+def bench_fem_scaling(args):
+    sizes = [int(s) for s in args.fem_sizes.split(",")]
+    results = []
+    print(f"mdss bench --fem-scaling: full-space StVK, one Newton iteration per step, sizes {sizes} tets "
+          f"(each size in its own process for its own peak memory)")
+    print(f"  {'tets':>8s} {'DOFs':>8s} {'element':>9s} {'scatter':>9s} {'assembly':>9s} {'factor':>9s} "
+          f"{'solve':>8s} {'iter':>9s} {'peak MB':>8s}")
+    for n in sizes:
+        out = subprocess.run([sys.executable, "-m", "mdss_ros.cli", "_bench_fem_one", str(n)],
+                             capture_output=True, text=True)
+        if out.returncode != 0:
+            raise SystemExit(f"mdss bench: size {n} failed:\n{out.stderr[-2000:]}")
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        m = r["median_ms"]
+        print(f"  {r['tets']:8d} {r['dofs']:8d} {m['element_ms']:8.1f}ms {m['scatter_ms']:8.1f}ms "
+              f"{m['assembly_ms']:8.1f}ms {m['factor_ms']:8.1f}ms {m['solve_ms']:7.1f}ms "
+              f"{r['newton_iteration_ms']:8.1f}ms {r['peak_rss_mb']:8.0f}", flush=True)
+        results.append(r)
+    print("  element = F, P, dP/dF and element matrices (numba, all tets); scatter = sum into CSR; "
+          "assembly = both plus residual; factor = CHOLMOD analyse+factor; solve = triangular solves")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(f"mdss bench: written {args.json}")
+    return 0
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="mdss", description="multi-domain subspace simulation tools")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+
+    def scene_args(p, required=True):
+        p.add_argument("scene", nargs=None if required else "?", help="scene file or name in msg_scenes/")
+        p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                       help="override a scene key, e.g. --set model.kind=full --set body.mesh.cell=0.02")
+
+    p = sub.add_parser("run", help="run a scene headless (no ROS), playing its timeline")
+    scene_args(p)
+    p.add_argument("--steps", type=int, help="number of steps (default: scene duration / dt)")
+    p.add_argument("--mcap", help="record an MCAP file")
+    p.add_argument("--rrd", help="record a rerun .rrd file")
+    p.add_argument("--json", help="write a JSON summary here")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("bench", help="time the step phases of a scene, or the full-space FEM scaling")
+    scene_args(p, required=False)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--json", help="write results here")
+    p.add_argument("--fem-scaling", action="store_true", help="full-space Newton iteration cost vs mesh size")
+    p.add_argument("--fem-sizes", default="10000,50000,240000", help="tet counts for --fem-scaling")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("_bench_fem_one", help=argparse.SUPPRESS)
+    p.add_argument("n", type=int)
+    p.set_defaults(func=lambda a: print(json.dumps(bench_fem_one(a.n))) or 0)
+
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    sys.exit(main())

@@ -1,0 +1,102 @@
+"""Global assembly over a precomputed sparsity pattern of the free DOFs.
+
+DOF layout: vertex v, axis i -> dof 3*v + i before pins are removed; the pattern
+maps that to a free-DOF index (or -1 for pinned DOFs, whose rows and columns are
+dropped). The pattern is built once per mesh; a step only scatters element arrays
+into the CSR data array, which keeps assembly free of Python loops and of
+scipy's COO->CSR conversion.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+
+
+@dataclass(frozen=True)
+class StiffnessPattern:
+    """CSR pattern of K restricted to free DOFs.
+
+    n_free: number of free DOFs.
+    free_dof: (3 * n_verts,) free index of each full DOF, -1 if pinned.
+    indptr: (n_free + 1,), indices: (nnz,) CSR pattern (columns sorted).
+    scatter: (n_tets, 144) position in the CSR data of element entry (r, c) = r*12 + c,
+             -1 when the entry touches a pinned DOF.
+    diagonal: (n_free,) position of each diagonal entry in the data array.
+    """
+
+    n_free: int
+    free_dof: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    scatter: np.ndarray
+    diagonal: np.ndarray
+
+    @property
+    def nnz(self):
+        return int(self.indices.size)
+
+    def matrix(self, data):
+        """Wrap a data array (nnz,) as a scipy CSR matrix sharing the pattern."""
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free, self.n_free))
+
+
+def element_dofs(tets):
+    """Full DOF indices of each element: (n_tets, 12), ordered vertex-major."""
+    return (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(len(tets), 12)
+
+
+def stiffness_pattern(tets, n_verts, pinned=()):
+    """Build the CSR pattern of the free-DOF stiffness and the element scatter map.
+
+    tets: (n_tets, 4); pinned: vertex indices whose DOFs are removed.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    is_free = np.ones(3 * n_verts, dtype=bool)
+    pinned = np.asarray(pinned, dtype=np.int64)
+    if pinned.size:
+        is_free[(3 * pinned[:, None] + np.arange(3)).ravel()] = False
+    free_dof = np.full(3 * n_verts, -1, dtype=np.int64)
+    free_dof[is_free] = np.arange(int(is_free.sum()))
+    n_free = int(is_free.sum())
+
+    edofs = free_dof[element_dofs(tets)]                   # (n_tets, 12)
+    rows = np.repeat(edofs, 12, axis=1)                    # entry r*12+c -> row of r
+    cols = np.tile(edofs, (1, 12))                         # entry r*12+c -> col of c
+    valid = (rows >= 0) & (cols >= 0)
+    keys = rows * n_free + cols
+    uniq = np.unique(keys[valid])
+    indptr = np.searchsorted(uniq // n_free, np.arange(n_free + 1)).astype(np.int64)
+    indices = (uniq % n_free).astype(np.int64)
+    scatter = np.full(keys.shape, -1, dtype=np.int64)
+    scatter[valid] = np.searchsorted(uniq, keys[valid])
+    diagonal = np.searchsorted(uniq, np.arange(n_free, dtype=np.int64) * (n_free + 1))
+    return StiffnessPattern(n_free, free_dof, indptr, indices, scatter, diagonal)
+
+
+@njit(cache=True)
+def _scatter_add(values, scatter, out):
+    n, k = scatter.shape
+    for e in range(n):
+        for j in range(k):
+            s = scatter[e, j]
+            if s >= 0:
+                out[s] += values[e, j]
+
+
+def assemble_matrix(pattern, element_mats, out=None):
+    """Sum element matrices (n_tets, 12, 12) into the pattern's data array (nnz,)."""
+    if out is None:
+        out = np.zeros(pattern.nnz)
+    else:
+        out[:] = 0.0
+    _scatter_add(element_mats.reshape(len(element_mats), 144), pattern.scatter, out)
+    return out
+
+
+def assemble_vector(tets, element_vecs, n_verts):
+    """Sum element vectors (n_tets, 4, 3) into a per-vertex array (n_verts, 3)."""
+    out = np.zeros((n_verts, 3))
+    for i in range(3):
+        out[:, i] = np.bincount(tets.ravel(), weights=element_vecs[:, :, i].ravel(), minlength=n_verts)
+    return out

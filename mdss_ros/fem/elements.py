@@ -1,0 +1,122 @@
+"""Linear tetrahedral elements: rest geometry and the per-element force kernel.
+
+Symbols: n_verts vertices, n_tets elements. A tet (a0, a1, a2, a3) is positively
+oriented: det Dm > 0 with Dm = [X1-X0, X2-X0, X3-X0].
+
+Sign convention (METHOD.md section 1): f_int = dE/dx, the gradient of the elastic
+energy, i.e. minus the force the element exerts; K = d f_int / dx.
+
+With shape-function gradients g_a = dN_a/dX (g_{k+1} = row k of Dm^-1,
+g_0 = -(g_1 + g_2 + g_3)):
+    F      = sum_a x_a g_a^T
+    f_a    = V P g_a
+    K_ab   = V sum_jl dP/dF[(i,j),(k,l)] g_a[j] g_b[l]      (3x3 block, rows i, cols k)
+"""
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from .materials import material_point
+
+
+@dataclass(frozen=True)
+class TetGeometry:
+    """Rest geometry of all elements.
+
+    volume: (n_tets,) rest volumes, > 0.
+    grads:  (n_tets, 4, 3) shape-function gradients g_a = dN_a/dX.
+    """
+
+    volume: np.ndarray
+    grads: np.ndarray
+
+
+def tet_geometry(X, tets):
+    """Rest volumes and shape-function gradients.
+
+    X: (n_verts, 3) rest positions; tets: (n_tets, 4) positively oriented.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    Dm = np.stack([X[tets[:, k]] - X[tets[:, 0]] for k in (1, 2, 3)], axis=2)  # columns are edges
+    det = np.linalg.det(Dm)
+    if np.any(det <= 0):
+        bad = np.flatnonzero(det <= 0)
+        raise ValueError(f"{bad.size} tets are degenerate or negatively oriented (first: {bad[:5].tolist()})")
+    Dm_inv = np.linalg.inv(Dm)
+    grads = np.empty((len(tets), 4, 3))
+    grads[:, 1:, :] = Dm_inv
+    grads[:, 0, :] = -Dm_inv.sum(axis=1)
+    return TetGeometry(volume=det / 6.0, grads=np.ascontiguousarray(grads))
+
+
+def deformation_gradients(x, tets, grads):
+    """F per element: (n_tets, 3, 3) from positions x (n_verts, 3)."""
+    return np.einsum("tai,taj->tij", x[tets], grads)
+
+
+@njit(cache=True, parallel=True)
+def element_kernel(x, tets, grads, volume, kind_id, params, want_hessian, project,
+                   energy_out, force_out, stiff_out):
+    """Energy, internal forces and stiffness of every element in one pass.
+
+    x (n_verts, 3); tets (n_tets, 4); grads (n_tets, 4, 3); volume (n_tets,)
+    energy_out (n_tets,); force_out (n_tets, 4, 3); stiff_out (n_tets, 12, 12) (untouched
+    unless want_hessian). Row/column 3*a + i of stiff_out is vertex a, axis i.
+    """
+    m = tets.shape[0]
+    for e in prange(m):
+        F = np.zeros((3, 3))
+        for a in range(4):
+            va = tets[e, a]
+            for i in range(3):
+                xi = x[va, i]
+                for j in range(3):
+                    F[i, j] += xi * grads[e, a, j]
+        P = np.empty((3, 3))
+        C = np.empty((9, 9))
+        psi = material_point(kind_id, F, params, P, C, want_hessian, project)
+        V = volume[e]
+        energy_out[e] = V * psi
+        for a in range(4):
+            for i in range(3):
+                s = 0.0
+                for j in range(3):
+                    s += P[i, j] * grads[e, a, j]
+                force_out[e, a, i] = V * s
+        if want_hessian:
+            # T[(i,j), b, k] = sum_l C[(i,j),(k,l)] g_b[l], then contract j with g_a.
+            T = np.empty((9, 4, 3))
+            for r in range(9):
+                for b in range(4):
+                    for k in range(3):
+                        s = 0.0
+                        for l in range(3):
+                            s += C[r, 3 * k + l] * grads[e, b, l]
+                        T[r, b, k] = s
+            for a in range(4):
+                for i in range(3):
+                    row = 3 * a + i
+                    for b in range(4):
+                        for k in range(3):
+                            s = 0.0
+                            for j in range(3):
+                                s += T[3 * i + j, b, k] * grads[e, a, j]
+                            stiff_out[e, row, 3 * b + k] = V * s
+
+
+def element_forces(x, tets, geom, material, want_hessian=True, project=False):
+    """Evaluate every element.
+
+    Returns energy (n_tets,), forces (n_tets, 4, 3) and, if want_hessian,
+    stiffness (n_tets, 12, 12) (else None).
+    """
+    m = len(tets)
+    energy = np.empty(m)
+    forces = np.empty((m, 4, 3))
+    stiff = np.empty((m, 12, 12)) if want_hessian else np.empty((1, 12, 12))
+    element_kernel(np.ascontiguousarray(x, dtype=np.float64), tets, geom.grads, geom.volume,
+                   material.kind_id, material.params, want_hessian, project,
+                   energy, forces, stiff)
+    return energy, forces, (stiff if want_hessian else None)

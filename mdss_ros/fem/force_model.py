@@ -1,0 +1,78 @@
+"""Full-space FEM force model: the small interface integrators see.
+
+    energy(x)            -> E                       elastic energy
+    forces(x)            -> (E, f_int (n_verts, 3))  f_int = dE/dx
+    tangent(x, project)  -> (E, f_int, K data (nnz,)) K = d f_int / dx on the free DOFs
+
+plus the mass matrix on the same sparsity pattern. Pinned vertices are removed from
+the unknowns by the pattern (their rows and columns never enter K or M).
+"""
+import time
+
+import numpy as np
+
+from .assembly import assemble_matrix, assemble_vector, stiffness_pattern
+from .elements import element_forces, tet_geometry
+from .mass import consistent_mass_elements, lumped_mass
+
+
+class FEMForceModel:
+    """Elasticity of a tet mesh with one material.
+
+    X: (n_verts, 3) rest positions; tets: (n_tets, 4) positively oriented;
+    material: a mdss_ros.fem.materials material; pinned: vertex indices held fixed;
+    mass: "lumped" or "consistent".
+    """
+
+    def __init__(self, X, tets, material, pinned=(), mass="lumped"):
+        self.X = np.ascontiguousarray(X, dtype=np.float64)
+        self.tets = np.ascontiguousarray(tets, dtype=np.int64)
+        self.n_verts = len(self.X)
+        self.material = material
+        self.pinned = np.unique(np.asarray(pinned, dtype=np.int64))
+        self.geom = tet_geometry(self.X, self.tets)
+        self.pattern = stiffness_pattern(self.tets, self.n_verts, self.pinned)
+        self.vertex_mass = lumped_mass(self.tets, self.geom.volume, material.density, self.n_verts)
+        if mass == "lumped":
+            self.M_data = np.zeros(self.pattern.nnz)
+            free = self.pattern.free_dof >= 0
+            self.M_data[self.pattern.diagonal] = np.repeat(self.vertex_mass, 3)[free]
+        elif mass == "consistent":
+            self.M_data = assemble_matrix(self.pattern, consistent_mass_elements(self.geom.volume, material.density))
+        else:
+            raise ValueError(f"mass must be 'lumped' or 'consistent', got {mass!r}")
+        self.mass_kind = mass
+        self.M = self.pattern.matrix(self.M_data)
+        self.timings = {}
+
+    @property
+    def n_free(self):
+        return self.pattern.n_free
+
+    def free(self, a):
+        """Restrict a per-vertex array (n_verts, 3) to the free DOF vector (n_free,)."""
+        return a.reshape(-1)[self.pattern.free_dof >= 0]
+
+    def expand(self, a_free, fill=0.0):
+        """Inverse of free(): (n_free,) -> (n_verts, 3) with pinned DOFs set to fill."""
+        out = np.full(3 * self.n_verts, fill, dtype=np.float64)
+        out[self.pattern.free_dof >= 0] = a_free
+        return out.reshape(self.n_verts, 3)
+
+    def energy(self, x):
+        e, _, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False)
+        return float(e.sum())
+
+    def forces(self, x):
+        e, fe, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False)
+        return float(e.sum()), assemble_vector(self.tets, fe, self.n_verts)
+
+    def tangent(self, x, project=False, out=None):
+        t0 = time.perf_counter()
+        e, fe, Ke = element_forces(x, self.tets, self.geom, self.material, want_hessian=True, project=project)
+        t1 = time.perf_counter()
+        f = assemble_vector(self.tets, fe, self.n_verts)
+        K = assemble_matrix(self.pattern, Ke, out)
+        t2 = time.perf_counter()
+        self.timings = {"element_ms": 1e3 * (t1 - t0), "scatter_ms": 1e3 * (t2 - t1)}
+        return float(e.sum()), f, K

@@ -1,0 +1,85 @@
+"""Full-space FEM model (`model.kind: full`): every vertex is an unknown.
+
+The ground truth every reduced result is measured against.
+"""
+import numpy as np
+
+from ..rotations import quat_from_matrix
+from .backward_euler import BackwardEuler, NewtonSettings
+from .force_model import FEMForceModel
+
+
+class FullSpaceModel:
+    """State x, v (n_verts, 3). step(f_ext) advances by dt with backward Euler."""
+
+    kind = "full"
+
+    def __init__(self, body, dt, integrator, damping, mass="lumped", solver="auto"):
+        self.body = body
+        self.force_model = FEMForceModel(body.vertices, body.tets, body.material, body.pinned, mass=mass)
+        settings = NewtonSettings(max_iterations=integrator["newton_iterations"],
+                                  tolerance=integrator["tolerance"],
+                                  line_search=integrator["line_search"],
+                                  projection=integrator["projection"],
+                                  alpha=damping["alpha"], beta=damping["beta"])
+        self.integrator = BackwardEuler(self.force_model, dt, settings, solver)
+        self.vertex_mass = self.force_model.vertex_mass
+        self.reset()
+
+    def reset(self):
+        self.x = self.body.vertices.copy()
+        self.v = np.zeros_like(self.x)
+
+    @property
+    def dt(self):
+        return self.integrator.dt
+
+    @property
+    def n_dofs(self):
+        return self.force_model.n_free
+
+    def step(self, f_ext):
+        self.x, self.v = self.integrator.step(self.x, self.v, f_ext)
+        return self.integrator.stats
+
+    def vertex_positions(self):
+        return self.x
+
+    def vertex_velocities(self):
+        return self.v
+
+    def positions_of(self, ids):
+        return self.x[ids]
+
+    def set_state(self, x, v):
+        """Set positions and velocities (n_verts, 3); pinned vertices keep their rest state."""
+        pinned = self.body.pinned
+        self.x = np.array(x, dtype=np.float64)
+        self.v = np.array(v, dtype=np.float64)
+        self.x[pinned] = self.body.vertices[pinned]
+        self.v[pinned] = 0.0
+
+    def elastic_energy(self):
+        return self.force_model.energy(self.x)
+
+    def kinetic_energy(self):
+        return 0.5 * float((self.vertex_mass * (self.v * self.v).sum(1)).sum()) if self.force_model.mass_kind == "lumped" \
+            else 0.5 * float(self.force_model.free(self.v) @ (self.force_model.M @ self.force_model.free(self.v)))
+
+    def domain_poses(self):
+        """One domain: the body's mass centre and best-fit rotation (polar decomposition)."""
+        return best_fit_pose(self.body.vertices, self.x, self.vertex_mass)[None, :]
+
+
+def best_fit_pose(X, x, mass):
+    """(7,) x y z qx qy qz qw of the rigid motion best fitting X -> x (mass-weighted)."""
+    m = mass.sum()
+    c0 = (mass[:, None] * X).sum(0) / m
+    c = (mass[:, None] * x).sum(0) / m
+    A = ((x - c) * mass[:, None]).T @ (X - c0)
+    U, _, Vt = np.linalg.svd(A)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return np.concatenate([c, quat_from_matrix(R)])

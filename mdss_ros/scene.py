@@ -1,0 +1,241 @@
+"""Scene files (msg_scenes/*.yaml): load, apply overrides, validate.
+
+A scene is a plain nested dict after loading, checked against SCHEMA: every key is
+known, every value has the right kind, defaults are filled in. Errors name the file,
+the dotted key and what is wrong, so a user can fix a scene without reading code.
+"""
+import copy
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import re
+
+import yaml
+
+from .errors import SceneError
+
+
+class _SceneLoader(yaml.SafeLoader):
+    """SafeLoader that also reads 1e5 and 1.0e7 as floats (YAML 1.1 wants 1.0e+7)."""
+
+
+_SceneLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"""),
+    list("-+0123456789"))
+
+
+def read_yaml(text):
+    """Parse YAML text the way scene and parameter files expect (1e5 is a float)."""
+    return yaml.load(text, Loader=_SceneLoader)
+
+# Leaf kinds: a type, a tuple of types, or a callable validator(value, where) -> value.
+_NUM = (int, float)
+
+
+def _vec3(value, where):
+    if (not isinstance(value, (list, tuple)) or len(value) != 3
+            or not all(isinstance(v, _NUM) and not isinstance(v, bool) for v in value)):
+        raise SceneError(f"{where}: expected a list of 3 numbers, got {value!r}")
+    return [float(v) for v in value]
+
+
+def _positive(value, where):
+    if not isinstance(value, _NUM) or isinstance(value, bool) or not value > 0:
+        raise SceneError(f"{where}: expected a positive number, got {value!r}")
+    return float(value)
+
+
+def _nonneg(value, where):
+    if not isinstance(value, _NUM) or isinstance(value, bool) or not value >= 0:
+        raise SceneError(f"{where}: expected a number >= 0, got {value!r}")
+    return float(value)
+
+
+def _posint(value, where):
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise SceneError(f"{where}: expected an integer >= 1, got {value!r}")
+    return value
+
+
+def _choice(*options):
+    def check(value, where):
+        if value not in options:
+            raise SceneError(f"{where}: expected one of {', '.join(map(repr, options))}, got {value!r}")
+        return value
+    return check
+
+
+def _any(value, where):
+    return value
+
+
+def _bool(value, where):
+    if not isinstance(value, bool):
+        raise SceneError(f"{where}: expected true or false, got {value!r}")
+    return value
+
+
+# Nested dicts are sections; a section's "*" key validates any sub-key (user-named maps).
+SCHEMA = {
+    "name": (str, None),
+    "description": (str, ""),
+    "body": {
+        "mesh": (dict, None),
+        "material": (dict, None),
+        "damping": {"alpha": (_nonneg, 0.0), "beta": (_nonneg, 0.0)},
+        "mass": (_choice("lumped", "consistent"), "lumped"),
+    },
+    "pins": (list, []),
+    "handles": (dict, {}),
+    "colliders": (dict, {}),
+    "model": {
+        "kind": (_choice("full", "reduced", "meshless"), "full"),
+        "domains": (_any, {"count": 1}),
+        "modes": (_posint, 20),
+        "cubature": (_any, {"samples": 0, "interface": "exact"}),
+        "integrator": {
+            "scheme": (_choice("one_step", "two_step", "backward_euler"), "one_step"),
+            "dt": (_positive, 1.0 / 90.0),
+            "newton_iterations": (_posint, 1),
+            "tolerance": (_positive, 1e-6),
+            "line_search": (_bool, True),
+            "projection": (_choice("auto", "always", "never"), "auto"),
+        },
+        "solver": (_choice("auto", "cholmod", "splu"), "auto"),
+    },
+    "gravity": (_vec3, [0.0, 0.0, -9.81]),
+    "duration": (_positive, 2.0),
+    "timeline": (list, []),
+}
+
+
+def _validate(section, schema, where, source):
+    if not isinstance(section, dict):
+        raise SceneError(f"{source}: {where or 'scene'}: expected a mapping, got {type(section).__name__}")
+    unknown = sorted(set(section) - set(schema))
+    if unknown:
+        raise SceneError(f"{source}: unknown key{'s' if len(unknown) > 1 else ''} "
+                         f"{', '.join((where + '.' if where else '') + k for k in unknown)} "
+                         f"(allowed: {', '.join(sorted(schema))})")
+    out = {}
+    for key, rule in schema.items():
+        dotted = f"{where}.{key}" if where else key
+        if isinstance(rule, dict):
+            out[key] = _validate(section.get(key, {}) or {}, rule, dotted, source)
+            continue
+        kind, default = rule
+        if key not in section:
+            if default is None:
+                raise SceneError(f"{source}: missing required key {dotted}")
+            out[key] = copy.deepcopy(default)
+            continue
+        value = section[key]
+        if isinstance(kind, type) or isinstance(kind, tuple):
+            if not isinstance(value, kind):
+                raise SceneError(f"{source}: {dotted}: expected {getattr(kind, '__name__', kind)}, got {value!r}")
+            out[key] = value
+        else:
+            out[key] = kind(value, f"{source}: {dotted}")
+    return out
+
+
+def apply_overrides(raw, overrides):
+    """Set dotted keys ("model.modes": 10) in a raw scene dict, creating sections as needed."""
+    raw = copy.deepcopy(raw)
+    for dotted, value in (overrides or {}).items():
+        node = raw
+        parts = dotted.split(".")
+        for p in parts[:-1]:
+            nxt = node.get(p)
+            if nxt is None:
+                nxt = node[p] = {}
+            if not isinstance(nxt, dict):
+                raise SceneError(f"override {dotted}: {p} is not a section")
+            node = nxt
+        node[parts[-1]] = value
+    return raw
+
+
+def scene_search_path():
+    """Folders searched for a scene given by name: cwd, the repo's msg_scenes, the installed share."""
+    here = Path(__file__).resolve().parent
+    return [Path.cwd(), Path.cwd() / "msg_scenes", here.parent / "msg_scenes",
+            Path(sys.prefix) / "share" / "mdss_ros" / "msg_scenes"]
+
+
+def resolve_scene_path(name_or_path):
+    p = Path(os.path.expanduser(str(name_or_path)))
+    if p.is_file():
+        return p
+    candidates = [p.name] if p.suffix else [p.name + ".yaml", p.name]
+    for folder in scene_search_path():
+        for c in candidates:
+            if (folder / c).is_file():
+                return folder / c
+    raise SceneError(f"scene {name_or_path!r} not found (looked in: "
+                     f"{', '.join(str(f) for f in scene_search_path())})")
+
+
+@dataclass
+class Scene:
+    """A validated scene. `data` is the full nested dict with defaults filled in;
+    `source` names the file (for messages); `base_dir` resolves relative mesh paths."""
+
+    data: dict
+    source: str = "<dict>"
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    def __getitem__(self, key):
+        return self.data[key]
+
+    @property
+    def name(self):
+        return self.data["name"]
+
+    @property
+    def dt(self):
+        return self.data["model"]["integrator"]["dt"]
+
+
+def load_scene(path_or_dict, overrides=None):
+    """Load and validate a scene from a path, a scene name in msg_scenes/, or a dict.
+
+    overrides: {"dotted.key": value} applied before validation.
+    """
+    if isinstance(path_or_dict, Scene):
+        raw, source, base = copy.deepcopy(path_or_dict.data), path_or_dict.source, path_or_dict.base_dir
+    elif isinstance(path_or_dict, dict):
+        raw, source, base = path_or_dict, "<dict>", Path.cwd()
+    else:
+        path = resolve_scene_path(path_or_dict)
+        source, base = str(path), path.parent
+        try:
+            raw = read_yaml(path.read_text())
+        except yaml.YAMLError as err:
+            raise SceneError(f"{path}: not valid YAML: {err}") from err
+        if raw is None:
+            raise SceneError(f"{path}: the file is empty")
+    raw = apply_overrides(raw, overrides)
+    data = _validate(raw, SCHEMA, "", source)
+    _check_sections(data, source)
+    return Scene(data=data, source=source, base_dir=Path(base))
+
+
+def _check_sections(data, source):
+    for i, pin in enumerate(data["pins"]):
+        if not isinstance(pin, dict):
+            raise SceneError(f"{source}: pins[{i}]: expected a region mapping (box, sphere, plane, indices)")
+    for name, region in data["handles"].items():
+        if not isinstance(region, dict):
+            raise SceneError(f"{source}: handles.{name}: expected a region mapping (box, sphere, plane, indices)")
+    for i, ev in enumerate(data["timeline"]):
+        if not isinstance(ev, dict) or "t" not in ev or "topic" not in ev:
+            raise SceneError(f"{source}: timeline[{i}]: each event needs t and topic, got {ev!r}")
+        if not isinstance(ev["t"], _NUM) or ev["t"] < 0:
+            raise SceneError(f"{source}: timeline[{i}].t: expected a time >= 0, got {ev['t']!r}")
+        if ev["topic"] not in ("wrench", "point_force", "collider_pose", "clear_forces"):
+            raise SceneError(f"{source}: timeline[{i}].topic: unknown topic {ev['topic']!r} "
+                             f"(wrench, point_force, collider_pose, clear_forces)")

@@ -1,0 +1,168 @@
+"""The Simulator facade (DESIGN.md "Python API"): one API over every model kind.
+
+It owns the inputs (handle wrenches, point forces, collider poses, gravity), turns
+them into per-vertex external forces each step, and delegates the dynamics to the
+model the scene asks for. Nothing here imports rclpy.
+"""
+import time
+
+import numpy as np
+
+from .body import build_body
+from .errors import SceneError
+from .loads import closest_surface_point, wrench_to_vertex_forces
+from .scene import Scene, load_scene
+
+
+def build_model(scene, body):
+    """The dynamics model of a scene (`model.kind`)."""
+    model = scene["model"]
+    kind = model["kind"]
+    if kind == "full":
+        from .fem.full_model import FullSpaceModel
+        return FullSpaceModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
+                              mass=scene["body"]["mass"], solver=model["solver"])
+    raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
+                     f"(available: full)")
+
+
+class Simulator:
+    """Steps one deformable body of a scene.
+
+    scene: a Scene, a path or scene name, or a dict (validated by load_scene).
+    """
+
+    def __init__(self, scene, overrides=None):
+        if not isinstance(scene, Scene) or overrides:
+            scene = load_scene(scene, overrides)
+        self.scene = scene
+        t0 = time.perf_counter()
+        self.body = build_body(scene)
+        self.model = build_model(scene, self.body)
+        self.build_seconds = time.perf_counter() - t0
+        self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
+        self._collider_names = set(scene["colliders"])
+        self.reset()
+
+    # ----------------------------------------------------------------- state
+    def reset(self):
+        """Back to the rest state at t = 0 with no inputs."""
+        self.model.reset()
+        self.time = 0.0
+        self.step_count = 0
+        self._wrenches = {}
+        self._point_forces = []   # (tri vertex ids (3,), barycentric (3,), force (3,), t_end or None)
+        self._collider_poses = {}
+        self._stats = {}
+
+    @property
+    def dt(self):
+        return self.model.dt
+
+    # ----------------------------------------------------------------- inputs
+    def set_wrench(self, handle, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)):
+        """Hold a wrench (world frame) on a handle until replaced; all zeros clears it."""
+        if handle not in self.body.handles:
+            raise KeyError(f"unknown handle {handle!r} (scene handles: {sorted(self.body.handles)})")
+        force = _finite3(force, "force")
+        torque = _finite3(torque, "torque")
+        if not force.any() and not torque.any():
+            self._wrenches.pop(handle, None)
+        else:
+            self._wrenches[handle] = (force, torque)
+
+    def add_point_force(self, point, force, duration=0.0):
+        """Apply force (3,) at the surface point nearest to point (3,).
+
+        duration 0: the next step only; > 0: for that many seconds; < 0: until clear_forces().
+        """
+        point = _finite3(point, "point")
+        force = _finite3(force, "force")
+        tris = self.body.surface.triangles
+        ids = self.body.surface.vertex_ids
+        k, bary, _ = closest_surface_point(point, self.model.positions_of(ids), tris)
+        t_end = None if duration < 0 else self.time + max(float(duration), 0.0)
+        self._point_forces.append((ids[tris[k]], bary, force, t_end))
+
+    def clear_forces(self):
+        """Drop all wrenches and point forces."""
+        self._wrenches.clear()
+        self._point_forces.clear()
+
+    def set_collider_pose(self, name, position, orientation=(0.0, 0.0, 0.0, 1.0)):
+        if name not in self._collider_names:
+            raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
+        self._collider_poses[name] = (_finite3(position, "position"), np.asarray(orientation, dtype=np.float64))
+
+    def external_forces(self):
+        """Per-vertex external force (n_verts, 3) for the coming step."""
+        f = self.model.vertex_mass[:, None] * self.gravity[None, :]
+        for handle, (force, torque) in self._wrenches.items():
+            ids = self.body.handles[handle]
+            f[ids] += wrench_to_vertex_forces(self.model.positions_of(ids), self.model.vertex_mass[ids], force, torque)
+        for ids, bary, force, _ in self._point_forces:
+            f[ids] += bary[:, None] * force[None, :]
+        return f
+
+    # ----------------------------------------------------------------- stepping
+    def step(self, n=1):
+        for _ in range(int(n)):
+            t0 = time.perf_counter()
+            f_ext = self.external_forces()
+            t1 = time.perf_counter()
+            model_stats = self.model.step(f_ext)
+            t2 = time.perf_counter()
+            self.time = (self.step_count + 1) * self.dt
+            self.step_count += 1
+            # A zero-duration force lasts exactly the step it was applied in.
+            self._point_forces = [p for p in self._point_forces if p[3] is None or p[3] > self.time + 1e-12]
+            self._stats = dict(model_stats, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
+
+    # ----------------------------------------------------------------- outputs
+    def surface_triangles(self):
+        return self.body.surface.triangles
+
+    def surface_positions(self):
+        return self.model.positions_of(self.body.surface.vertex_ids)
+
+    def surface_vertex_ids(self):
+        return self.body.surface.vertex_ids
+
+    def vertex_positions(self):
+        return self.model.vertex_positions()
+
+    def rest_positions(self):
+        return self.body.vertices
+
+    def tetrahedra(self):
+        return self.body.tets
+
+    def pinned_vertices(self):
+        return self.body.pinned
+
+    def domain_poses(self):
+        return self.model.domain_poses()
+
+    def energy(self):
+        kinetic = self.model.kinetic_energy()
+        elastic = self.model.elastic_energy()
+        x = self.model.vertex_positions()
+        gravity = -float((self.model.vertex_mass * (x @ self.gravity)).sum())
+        return {"kinetic": kinetic, "elastic": elastic, "gravity": gravity,
+                "total": kinetic + elastic + gravity}
+
+    def collider_wrench(self, name):
+        if name not in self._collider_names:
+            raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
+        return np.zeros(6)
+
+    def stats(self):
+        return dict(self._stats, kind=self.model.kind, dofs=self.model.n_dofs, domains=1,
+                    vertices=len(self.body.vertices), tets=len(self.body.tets), time=self.time)
+
+
+def _finite3(v, what):
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{what} must be 3 finite numbers, got {v!r}")
+    return a

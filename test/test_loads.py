@@ -1,0 +1,38 @@
+import numpy as np
+
+from mdss_ros.loads import closest_points_on_triangles, closest_surface_point, wrench_to_vertex_forces
+
+
+def test_closest_point_matches_dense_sampling():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        a, b, c = rng.normal(size=(3, 3))
+        p = rng.normal(size=3) * 2
+        d2, bary = closest_points_on_triangles(p, a[None], b[None], c[None])
+        # Brute force over a fine barycentric grid.
+        u, v = np.meshgrid(np.linspace(0, 1, 301), np.linspace(0, 1, 301))
+        keep = u + v <= 1
+        pts = a + u[keep, None] * (b - a) + v[keep, None] * (c - a)
+        best = ((pts - p) ** 2).sum(1).min()
+        assert d2[0] <= best + 1e-12
+        assert d2[0] >= best - 5e-3 * (1 + best)
+        assert np.all(bary >= -1e-12) and abs(bary.sum() - 1) < 1e-12
+
+
+def test_closest_surface_point_picks_nearest_triangle():
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0], [6, 5, 0], [5, 6, 0]], float)
+    tris = np.array([[0, 1, 2], [3, 4, 5]])
+    k, bary, dist = closest_surface_point([5.2, 5.2, 1.0], pos, tris)
+    assert k == 1 and abs(dist - 1.0) < 1e-12
+    np.testing.assert_allclose(bary @ pos[tris[1]], [5.2, 5.2, 0.0], atol=1e-12)
+
+
+def test_wrench_spread_reproduces_force_and_torque():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(20, 3))
+    m = rng.uniform(0.5, 2.0, 20)
+    force, torque = np.array([1.0, -2.0, 0.5]), np.array([0.3, 0.1, -0.7])
+    f = wrench_to_vertex_forces(x, m, force, torque)
+    c = (m[:, None] * x).sum(0) / m.sum()
+    np.testing.assert_allclose(f.sum(0), force, atol=1e-12)
+    np.testing.assert_allclose(np.cross(x - c, f).sum(0), torque, atol=1e-12)
