@@ -14,16 +14,20 @@ from .loads import closest_surface_point, wrench_to_vertex_forces
 from .scene import Scene, load_scene
 
 
-def build_model(scene, body):
-    """The dynamics model of a scene (`model.kind`)."""
+def build_model(scene, body, progress=None):
+    """The dynamics model of a scene (`model.kind`); progress(msg) hears long build steps."""
     model = scene["model"]
     kind = model["kind"]
     if kind == "full":
         from .fem.full_model import FullSpaceModel
         return FullSpaceModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
                               mass=scene["body"]["mass"], solver=model["solver"])
+    if kind == "reduced":
+        from .reduced.reduced_model import ReducedModel
+        return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
+                            progress=progress)
     raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
-                     f"(available: full)")
+                     f"(available: full, reduced)")
 
 
 class Simulator:
@@ -32,13 +36,13 @@ class Simulator:
     scene: a Scene, a path or scene name, or a dict (validated by load_scene).
     """
 
-    def __init__(self, scene, overrides=None):
+    def __init__(self, scene, overrides=None, progress=None):
         if not isinstance(scene, Scene) or overrides:
             scene = load_scene(scene, overrides)
         self.scene = scene
         t0 = time.perf_counter()
         self.body = build_body(scene)
-        self.model = build_model(scene, self.body)
+        self.model = build_model(scene, self.body, progress)
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
         self._collider_names = set(scene["colliders"])
@@ -48,6 +52,9 @@ class Simulator:
     def reset(self):
         """Back to the rest state at t = 0 with no inputs."""
         self.model.reset()
+        iv = self.scene["initial_velocity"]
+        if any(iv["linear"]) or any(iv["angular"]):
+            self.model.set_rigid_velocity(iv["linear"], iv["angular"])
         self.time = 0.0
         self.step_count = 0
         self._wrenches = {}
@@ -157,7 +164,8 @@ class Simulator:
         return np.zeros(6)
 
     def stats(self):
-        return dict(self._stats, kind=self.model.kind, dofs=self.model.n_dofs, domains=1,
+        return dict(self._stats, kind=self.model.kind, dofs=self.model.n_dofs,
+                    domains=len(self.model.domain_poses()),
                     vertices=len(self.body.vertices), tets=len(self.body.tets), time=self.time)
 
 

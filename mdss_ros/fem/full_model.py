@@ -59,6 +59,14 @@ class FullSpaceModel:
         self.x[pinned] = self.body.vertices[pinned]
         self.v[pinned] = 0.0
 
+    def set_rigid_velocity(self, linear, angular, center=None):
+        """Give the body the rigid velocity v + w x (x - center) (default: centre of mass)."""
+        m = self.vertex_mass
+        if center is None:
+            center = (m[:, None] * self.x).sum(0) / m.sum()
+        self.v = np.asarray(linear, float) + np.cross(np.asarray(angular, float), self.x - center)
+        self.v[self.body.pinned] = 0.0
+
     def elastic_energy(self):
         return self.force_model.energy(self.x)
 

@@ -1,0 +1,127 @@
+"""Coupling elements: ordinary elements whose vertices lie in different domains.
+
+Their forces and stiffness are evaluated in the world frame from the world positions of
+their vertices (which come from different frames), then mapped to the generalised DOFs
+of every domain they touch with the velocity map J (METHOD.md sections 5-6):
+
+    subspace vertex l of domain i:  xd_l = J_l [qd_i; v_i; w_i],
+                                    J_l = [R_i U_l, I3, -[x_l - c_i]x]   (3 x (r_i + 6))
+    subspace vertex of a fixed domain: J_l = [U_l]                        (3 x r_i)
+    full-space vertex:               J_l = I3 on its own three DOFs.
+
+    generalised force   G += J_l^T f_l             (f_l = dE_e/dx_l)
+    generalised tangent A += J_a^T K_e[a, b] J_b    (for every vertex pair a, b of e)
+
+so the reduced force on domain i is sum U_l^T R_i^T f_l, its force sum f_l and its
+torque sum (x_l - c_i) x f_l, exactly the F_ij, f_ij, tau_ij of section 5. One kernel
+serves any element size (tets: 4 vertices; springs of the spring-coupling foil: 2).
+
+Generalised DOFs are split into the subspace part (dense, size S) and the full-space
+part (sparse, size F). Vertex pairs that are both full-space go through the full-space
+FEM scatter instead of this kernel; a full-subspace pair lands in A_sI, the dense
+block between subspace DOFs and the full-space DOFs that touch a coupling element.
+"""
+import numpy as np
+from numba import njit
+
+
+def skew_batch(p):
+    """[p]x for p (n, 3): (n, 3, 3)."""
+    z = np.zeros(len(p))
+    return np.stack([np.stack([z, -p[:, 2], p[:, 1]], 1),
+                     np.stack([p[:, 2], z, -p[:, 0]], 1),
+                     np.stack([-p[:, 1], p[:, 0], z], 1)], 1)
+
+
+@njit(cache=True)
+def project_coupling(elem, f_e, K_e, J, cols, is_full, icol, G, A_ss, A_sI):
+    """Accumulate J^T f and J^T K J of coupling elements.
+
+    elem (n_c, k): index of each element vertex in the interface-vertex arrays.
+    f_e (n_c, k, 3), K_e (n_c, 3k, 3k): world-frame element forces and stiffness.
+    J (n_I, 3, s_max), cols (n_I, s_max): J_l and the generalised column of each of its
+      columns (-1 = padding); for full-space vertices J = I3 and cols are their DOFs.
+    is_full (n_I,) bool; icol (n_I, 3): column in A_sI of a full-space vertex's DOFs.
+    G (S + F,), A_ss (S, S), A_sI (S, F_I): outputs, added to.
+    """
+    n_c, k = elem.shape
+    s_max = J.shape[2]
+    T = np.empty((3, s_max))
+    for e in range(n_c):
+        for a in range(k):
+            la = elem[e, a]
+            for s in range(s_max):
+                c = cols[la, s]
+                if c < 0:
+                    continue
+                acc = 0.0
+                for i in range(3):
+                    acc += J[la, i, s] * f_e[e, a, i]
+                G[c] += acc
+            if is_full[la]:
+                continue            # rows of full-space DOFs: full-full via FEM, full-sub by symmetry
+            for b in range(k):
+                lb = elem[e, b]
+                # T = K_ab J_b  (3 x s_max)
+                for i in range(3):
+                    for t in range(s_max):
+                        acc = 0.0
+                        if cols[lb, t] >= 0:
+                            for j in range(3):
+                                acc += K_e[e, 3 * a + i, 3 * b + j] * J[lb, j, t]
+                        T[i, t] = acc
+                for s in range(s_max):
+                    row = cols[la, s]
+                    if row < 0:
+                        continue
+                    for t in range(s_max):
+                        if cols[lb, t] < 0:
+                            continue
+                        acc = J[la, 0, s] * T[0, t] + J[la, 1, s] * T[1, t] + J[la, 2, s] * T[2, t]
+                        if is_full[lb]:
+                            A_sI[row, icol[lb, t]] += acc
+                        else:
+                            A_ss[row, cols[lb, t]] += acc
+
+
+@njit(cache=True)
+def project_forces(elem, f_e, J, cols, G):
+    """Only G += J^T f (for energy-only evaluations and explicit forces)."""
+    n_c, k = elem.shape
+    s_max = J.shape[2]
+    for e in range(n_c):
+        for a in range(k):
+            la = elem[e, a]
+            for s in range(s_max):
+                c = cols[la, s]
+                if c >= 0:
+                    G[c] += J[la, 0, s] * f_e[e, a, 0] + J[la, 1, s] * f_e[e, a, 1] + J[la, 2, s] * f_e[e, a, 2]
+
+
+def spring_forces(x, springs, rest_length, k_spring, want_hessian=True):
+    """Zero-damping springs between vertex pairs: the spring-coupling foil.
+
+    x (n, 3); springs (n_s, 2); rest_length (n_s,); k_spring scalar (N/m).
+    E = k/2 (|d| - L)^2 with d = x_b - x_a. Returns energy (n_s,), f (n_s, 2, 3)
+    (f = dE/dx) and K (n_s, 6, 6).
+    """
+    d = x[springs[:, 1]] - x[springs[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    n = d / np.maximum(length, 1e-300)[:, None]
+    stretch = length - rest_length
+    energy = 0.5 * k_spring * stretch ** 2
+    fb = (k_spring * stretch)[:, None] * n
+    f = np.stack([-fb, fb], axis=1)
+    if not want_hessian:
+        return energy, f, None
+    ratio = np.where(length > 0, stretch / np.maximum(length, 1e-300), 0.0)
+    # d^2E/dd^2 = k n n^T + k (1 - L/|d|)(I - n n^T); not PSD when compressed, so clamp
+    # the transverse term at zero (the usual spring projection).
+    nn = n[:, :, None] * n[:, None, :]
+    Kdd = k_spring * (nn + np.maximum(ratio, 0.0)[:, None, None] * (np.eye(3) - nn))
+    K = np.zeros((len(springs), 6, 6))
+    K[:, :3, :3] = Kdd
+    K[:, 3:, 3:] = Kdd
+    K[:, :3, 3:] = -Kdd
+    K[:, 3:, :3] = -Kdd
+    return energy, f, K

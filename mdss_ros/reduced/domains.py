@@ -1,0 +1,144 @@
+"""Domains of a partitioned body: subspace domains (frame + modal basis) and full-space ones.
+
+A subspace domain owns its vertices X_i, its domain elements E_i (evaluated exactly in
+its own frame, where elasticity does not see the rigid motion) and its basis U_i.
+A full-space domain (METHOD.md section 8) keeps every vertex of X_i as an unknown in
+the world frame; its elements can be cut at run time.
+"""
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..fem.force_model import FEMForceModel
+from .frames import fictitious_tensors, rest_inertia
+
+
+@dataclass
+class SubspaceDomain:
+    """vertices (n_i,) global ids; r_local (n_i, 3) rest coordinates about cbar;
+    mass (n_i,) lumped vertex masses; U (3 n_i, r); movable: has rigid DOFs (no pins)."""
+
+    index: int
+    name: str
+    vertices: np.ndarray
+    cbar: np.ndarray
+    r_local: np.ndarray
+    mass: np.ndarray
+    U: np.ndarray
+    movable: bool
+    forces: FEMForceModel
+    basis_info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.total_mass = float(self.mass.sum())
+        self.inertia0 = rest_inertia(self.r_local, self.mass)
+        self.tensors = fictitious_tensors(self.U, self.r_local, self.mass) if self.movable else None
+        self.U3 = self.U.reshape(len(self.vertices), 3, -1)       # (n_i, 3, r) view per vertex
+
+    @property
+    def r(self):
+        return self.U.shape[1]
+
+    @property
+    def n_dofs(self):
+        return self.r + (6 if self.movable else 0)
+
+    def local_positions(self, q):
+        """p_l = r_l + U_l q: (n_i, 3) positions in the domain frame."""
+        return self.r_local + (self.U @ q).reshape(-1, 3)
+
+    def reduced_tangent(self, q, want_hessian=True):
+        """Elastic energy, U^T f_int (r,) and U^T K U (r, r) of the domain elements at q."""
+        p = self.local_positions(q)
+        if not want_hessian:
+            e, f = self.forces.forces(p)
+            return e, self.U.T @ f.reshape(-1), None
+        e, f, K_data = self.forces.tangent(p)
+        if K_data is None:
+            return e, self.U.T @ f.reshape(-1), np.zeros((self.r, self.r))
+        K = self.forces.pattern.matrix(K_data)
+        return e, self.U.T @ f.reshape(-1), self.U.T @ (K @ self.U)
+
+
+@dataclass
+class FullDomain:
+    """A domain simulated in full space: vertices (n_i,) global ids, of which `free`
+    (bool (n_i,)) are unknowns (pinned ones are not)."""
+
+    index: int
+    name: str
+    vertices: np.ndarray
+    free: np.ndarray
+    elements: np.ndarray          # global tet ids of its domain elements
+    alive: np.ndarray = None      # bool per element; cutting clears entries
+
+    def __post_init__(self):
+        if self.alive is None:
+            self.alive = np.ones(len(self.elements), dtype=bool)
+
+    @property
+    def n_dofs(self):
+        return 3 * int(self.free.sum())
+
+
+def submesh_around(tets, vertices_of_domain, n_verts):
+    """Tets touching a domain's vertices and the vertex set they span.
+
+    Returns (sub_vertices (k,) global ids, sub_tets (m, 4) local ids, keep (n_i,) local
+    ids of the domain's own vertices). The layer of neighbouring vertices lets the
+    domain's modes see a free (not clamped) interface when computed.
+    """
+    in_dom = np.zeros(n_verts, dtype=bool)
+    in_dom[vertices_of_domain] = True
+    touching = in_dom[tets].any(axis=1)
+    sub_t = tets[touching]
+    sub_v = np.unique(sub_t)
+    local = np.full(n_verts, -1, dtype=np.int64)
+    local[sub_v] = np.arange(len(sub_v))
+    return sub_v, local[sub_t], local[vertices_of_domain]
+
+
+def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, basis_opts, pinned_mask):
+    """Basis and local force model of one subspace domain."""
+    from .modal_basis import complete_basis, modal_basis
+    t0 = time.perf_counter()
+    basis_opts = dict(basis_opts)
+    complete = basis_opts.pop("complete", False)
+    X = body.vertices
+    m = vertex_mass[verts]
+    cbar = (m[:, None] * X[verts]).sum(0) / m.sum()
+    fixed_local = np.flatnonzero(pinned_mask[verts])
+    sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X))
+    sub_local = np.full(len(X), -1, dtype=np.int64)
+    sub_local[sub_v] = np.arange(len(sub_v))
+    if complete:    # every free DOF: the reduced model is an exact change of basis (tests)
+        basis = complete_basis(X[sub_v], sub_t, body.material, vertex_mass[sub_v],
+                               fixed=sub_local[verts[fixed_local]], keep=keep)
+    else:
+        basis = modal_basis(X[sub_v], sub_t, body.material, vertex_mass[sub_v], r,
+                            fixed=sub_local[verts[fixed_local]], keep=keep, **basis_opts)
+    local = np.full(len(X), -1, dtype=np.int64)
+    local[verts] = np.arange(len(verts))
+    tets_local = local[body.tets[elements]]
+    forces = FEMForceModel(X[verts] - cbar, tets_local, body.material) if len(elements) else _NoElements(len(verts))
+    return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
+                          mass=m, U=basis.U, movable=fixed_local.size == 0, forces=forces,
+                          basis_info={"n_linear": basis.n_linear, "n_derivatives": basis.n_derivatives,
+                                      "eigenvalues": basis.eigenvalues, "seconds": time.perf_counter() - t0})
+
+
+class _NoElements:
+    """Force model of a domain with no domain elements (all its tets are coupling ones)."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def forces(self, p):
+        return 0.0, np.zeros((self.n, 3))
+
+    def energy(self, p):
+        return 0.0
+
+    def tangent(self, p):
+        return 0.0, np.zeros((self.n, 3)), None

@@ -1,0 +1,109 @@
+"""Rigid frames of subspace domains and the fictitious forces of their non-inertial frames.
+
+Domain i: rest vertices X_l (l in X_i), lumped masses m_l, rest centre of mass cbar,
+local rest coordinates r_l = X_l - cbar, basis U (3 n_i x r, mass-orthonormal and, for a
+free domain, mass-orthogonal to the six rigid modes). State c, R, v, w (world), q, qd.
+
+    x_l = c + R (r_l + U_l q),      xd_l = v + w x (x_l - c) + R U_l qd
+
+Fictitious forces in the frame (omega = R^T w, alpha = d omega/dt, p_l = r_l + U_l q):
+Coriolis -2 m omega x U_l qd, inertial -m R^T a, Euler -m alpha x p_l, centrifugal
+-m omega x (omega x p_l). Projected on U they are polynomials in (q, qd, omega, alpha)
+whose coefficients are the tensors below, computed once (the "sandwich" idea of Kim and
+James 2011), so a step never loops over vertices:
+
+    W[a, b]  = sum_l m_l u_la x u_lb                (r, r, 3), antisymmetric in a, b
+    B1[a]    = sum_l m_l u_la r_l^T                  (r, 3, 3)
+    B2[a, b] = sum_l m_l u_la u_lb^T                 (r, r, 3, 3)
+    s[a]     = trace B1[a] = sum_l m_l u_la . r_l
+
+    U^T f_fc = 2 W(qd) omega + W(q) alpha                       (Coriolis, Euler)
+               - omega^T B1 omega - sum_b q_b omega^T B2[:, b] omega
+               + |omega|^2 (s + q)                               (centrifugal)
+
+with W(y)[a] = sum_b y_b W[a, b]. The inertial term vanishes because U is
+mass-orthogonal to translations, and the q-free Euler term because it is
+mass-orthogonal to rotations. u_la is the 3-vector of column a at vertex l.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..rotations import exp_so3
+
+
+@dataclass(frozen=True)
+class FictitiousTensors:
+    """Precomputed projections of the fictitious forces (shapes in the module docstring)."""
+
+    W: np.ndarray
+    B1: np.ndarray
+    B2: np.ndarray
+    s: np.ndarray
+
+
+def fictitious_tensors(U, r_local, mass):
+    """U (3 n_i, r); r_local (n_i, 3) rest coordinates about the centre of mass; mass (n_i,)."""
+    n = len(mass)
+    u = U.reshape(n, 3, -1)                                  # u[l, i, a]
+    mu = mass[:, None, None] * u
+    W = np.cross(mu.transpose(2, 0, 1)[:, None], u.transpose(2, 0, 1)[None, :]).sum(axis=2)
+    B1 = np.einsum("lia,lj->aij", mu, r_local)
+    B2 = np.einsum("lia,ljb->abij", mu, u)
+    return FictitiousTensors(W=W, B1=B1, B2=B2, s=np.einsum("aii->a", B1))
+
+
+def fictitious_forces(t, q, qd, omega, alpha):
+    """U^T f_fc: (r,) for q, qd (r,) and the frame's omega, alpha (3,) in the local frame."""
+    Wqd = np.einsum("b,abk->ak", qd, t.W)
+    Wq = np.einsum("b,abk->ak", q, t.W)
+    w2 = float(omega @ omega)
+    centrifugal = (-np.einsum("i,aij,j->a", omega, t.B1, omega)
+                   - np.einsum("b,i,abij,j->a", q, omega, t.B2, omega)
+                   + w2 * (t.s + q))
+    return 2.0 * Wqd @ omega + Wq @ alpha + centrifugal
+
+
+@dataclass
+class FrameState:
+    """Rigid state of all d subspace domains (world frame).
+
+    c (d, 3) centres of mass; R (d, 3, 3) rotations; v (d, 3) linear and w (d, 3)
+    angular velocities; w_prev (d, 3) the angular velocity of the previous step
+    (for the explicit angular acceleration of the Euler force).
+    """
+
+    c: np.ndarray
+    R: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+    w_prev: np.ndarray
+
+    @classmethod
+    def at_rest(cls, centres):
+        d = len(centres)
+        return cls(c=np.array(centres, dtype=np.float64), R=np.tile(np.eye(3), (d, 1, 1)),
+                   v=np.zeros((d, 3)), w=np.zeros((d, 3)), w_prev=np.zeros((d, 3)))
+
+    def copy(self):
+        return FrameState(self.c.copy(), self.R.copy(), self.v.copy(), self.w.copy(), self.w_prev.copy())
+
+    def advance(self, v_new, w_new, dt, movable):
+        """c' = c + dt v', R' = exp([dt w']x) R for the movable domains (bool (d,))."""
+        self.w_prev = self.w.copy()
+        self.v = np.where(movable[:, None], v_new, 0.0)
+        self.w = np.where(movable[:, None], w_new, 0.0)
+        self.c = self.c + dt * self.v
+        for i in np.flatnonzero(movable):          # loop over domains (d ~ 10), not vertices
+            self.R[i] = _orthonormalise(exp_so3(dt * self.w[i]) @ self.R[i])
+
+
+def _orthonormalise(R):
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
+def rest_inertia(r_local, mass):
+    """Rest inertia tensor about the centre of mass: (3, 3)."""
+    rr = (mass * (r_local * r_local).sum(1)).sum()
+    return rr * np.eye(3) - np.einsum("l,li,lj->ij", mass, r_local, r_local)

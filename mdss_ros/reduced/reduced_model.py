@@ -1,0 +1,629 @@
+"""The multi-domain subspace model (`model.kind: reduced`), stepped by one unified
+implicit solve over all domains (METHOD.md section 6):
+
+    A Q' = b
+    A = Mgen + dt Dgen + dt^2 Kgen,    Dgen = alpha Mgen + beta Kgen(step start)
+    b = Mgen Q + dt (J^T f_ext - G_int + F_fict + F_gyro)
+
+Q stacks, per subspace domain, [qd_i; v_i; w_i] (a domain holding pins: qd_i only), then
+the velocities of the free vertices of full-space domains. Mgen = blockdiag(I_r, m_i I3,
+I_i(world)) and lumped masses for full-space vertices. Kgen holds U_i^T K_i U_i of each
+domain's elements (evaluated in the domain frame), J_e^T K_e J_e of every coupling
+element, and the full-space stiffness. Fictitious forces (section 4) and the gyroscopic
+term -w x I w are explicit, as in the paper. After the solve:
+q' = q + dt qd', c' = c + dt v', R' = exp([dt w']x) R, x' = x + dt xd' (full space).
+
+newton_iterations > 1 re-evaluates forces and tangents at the predicted state and
+iterates on the residual r(Q) = Mgen (Q - Q_n) + dt (Dgen Q + G_int(s(Q)) - F_n), with the
+explicit terms F_n frozen at the step start, and an Armijo line search on the matching
+incremental potential. Its first iterate is exactly the one-step method above.
+"""
+import time
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from ..errors import SceneError
+from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
+from ..fem.elements import TetGeometry, element_forces, tet_geometry
+from ..fem.mass import lumped_mass
+from ..linear_solver import NotPositiveDefinite, SparseSolver
+from ..rotations import quat_from_matrix
+from .block_cholesky import BlockCholesky
+from .coupling import project_coupling, project_forces, skew_batch, spring_forces
+from .domains import FullDomain, build_subspace_domain
+from .frames import FrameState, fictitious_forces
+
+
+def _subset_geometry(geom, ids):
+    return TetGeometry(volume=geom.volume[ids], grads=np.ascontiguousarray(geom.grads[ids]))
+
+
+class ReducedModel:
+    """Multi-domain subspace model of a Body; see the module docstring.
+
+    cfg: the scene's `model` section; damping {"alpha", "beta"}; dt > 0.
+    """
+
+    kind = "reduced"
+
+    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None):
+        from .partition import build_partition, domain_elimination_order
+        t_start = time.perf_counter()
+        say = progress or (lambda msg: None)
+        self.body = body
+        self.cfg = cfg
+        self.dt = float(dt)
+        self.alpha, self.beta = float(damping["alpha"]), float(damping["beta"])
+        integ = cfg["integrator"]
+        self.scheme = integ["scheme"] if integ["scheme"] != "backward_euler" else "one_step"
+        self.newton_iterations = integ["newton_iterations"]
+        self.tolerance = integ["tolerance"]
+        self.line_search = integ["line_search"]
+        X, tets = body.vertices, body.tets
+        n = len(X)
+        self.geom = tet_geometry(X, tets)
+        self.vertex_mass = lumped_mass(tets, self.geom.volume, body.material.density, n)
+
+        # Partition --------------------------------------------------------------
+        labels, names = self._labels(cfg, body)
+        self.partition = build_partition(tets, labels, names=names)
+        part = self.partition
+        d = part.n_domains
+        full_set = self._full_space_set(cfg, names)
+        pinned_mask = np.zeros(n, dtype=bool)
+        pinned_mask[body.pinned] = True
+        say(f"partition: {d} domains, {len(part.coupling_elements)} coupling elements, "
+            f"graph edges {np.asarray(part.graph_edges).tolist()}")
+
+        # Domains ----------------------------------------------------------------
+        r = cfg["modes"]
+        basis_opts = dict(cfg.get("basis") or {})
+        self.subspace, self.full = [], []
+        self.vertex_domain = np.asarray(labels, dtype=np.int64)
+        self.vertex_local = np.empty(n, dtype=np.int64)
+        self.domain_kind = []                    # per domain: ("sub", k) or ("full", k)
+        for i in range(d):
+            verts = part.domain_vertices[i]
+            self.vertex_local[verts] = np.arange(len(verts))
+            if i in full_set:
+                self.domain_kind.append(("full", len(self.full)))
+                self.full.append(FullDomain(i, names[i], verts, ~pinned_mask[verts], part.domain_elements[i]))
+                continue
+            r_i = min(r, 3 * len(verts) - (6 if not pinned_mask[verts].any() else 3 * int(pinned_mask[verts].sum())))
+            if r_i < 1:
+                raise SceneError(f"domain {names[i]} has too few free DOFs for a subspace ({len(verts)} vertices)")
+            dom = build_subspace_domain(i, names[i], body, self.vertex_mass, verts, part.domain_elements[i],
+                                        r_i, basis_opts, pinned_mask)
+            self.domain_kind.append(("sub", len(self.subspace)))
+            self.subspace.append(dom)
+            say(f"domain {names[i]}: {len(verts)} vertices, {len(part.domain_elements[i])} elements, "
+                f"r = {dom.r}, {'free (frame + modes)' if dom.movable else 'pinned (modes only)'}, "
+                f"basis {dom.basis_info['seconds']:.2f} s")
+        self.movable = np.array([dom.movable for dom in self.subspace], dtype=bool)
+
+        # Generalised DOF layout -------------------------------------------------
+        sizes = np.array([dom.n_dofs for dom in self.subspace], dtype=np.int64)
+        self.sub_offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self.S = int(self.sub_offsets[-1])
+        full_free = np.zeros(n, dtype=bool)
+        for fd in self.full:
+            full_free[fd.vertices[fd.free]] = True
+        self.is_full_vertex = np.zeros(n, dtype=bool)
+        for fd in self.full:
+            self.is_full_vertex[fd.vertices] = True
+        # Full-space pattern: every element touching a free full-space vertex (their
+        # domain elements and coupling elements); other vertices' DOFs are dropped.
+        coupling = np.asarray(part.coupling_elements, dtype=np.int64)
+        full_elems = np.concatenate([fd.elements for fd in self.full]).astype(np.int64) if self.full else np.zeros(0, np.int64)
+        self.ff_elements = np.concatenate([full_elems, coupling]) if self.full else np.zeros(0, np.int64)
+        if self.full:
+            self.ff_pattern = stiffness_pattern(tets[self.ff_elements], n, np.flatnonzero(~full_free))
+            self.F = self.ff_pattern.n_free
+            self.full_dof_of_vertex = np.where(full_free, self.ff_pattern.free_dof[3 * np.arange(n)] // 3, -1)
+            Mf = np.zeros(self.ff_pattern.nnz)
+            Mf[self.ff_pattern.diagonal] = np.repeat(self.vertex_mass[full_free], 3)
+            self.M_ff = Mf
+            self.ff_geom = _subset_geometry(self.geom, self.ff_elements)
+            self.n_full_elems = len(full_elems)
+        else:
+            self.F = 0
+            self.full_dof_of_vertex = np.full(n, -1, dtype=np.int64)
+        self.n_gen = self.S + self.F
+
+        # Coupling ---------------------------------------------------------------
+        ccfg = dict(cfg.get("coupling") or {})
+        self.coupling_kind = ccfg.get("kind", "element")
+        if self.coupling_kind == "element":
+            self.c_verts = tets[coupling]                       # (n_c, 4) global
+            self.c_geom = _subset_geometry(self.geom, coupling)
+        elif self.coupling_kind == "spring":
+            self.c_verts = self._coupling_springs(tets[coupling])
+            self.spring_k = float(ccfg.get("stiffness", 1e4))
+            self.spring_rest = np.linalg.norm(X[self.c_verts[:, 1]] - X[self.c_verts[:, 0]], axis=1)
+        else:
+            raise SceneError(f"model.coupling.kind: {self.coupling_kind!r} (element, spring)")
+        self.iface, inv = np.unique(self.c_verts, return_inverse=True)
+        self.c_elem = inv.reshape(self.c_verts.shape).astype(np.int64)
+        self._build_interface_maps()
+
+        # Solver -------------------------------------------------------------------
+        self.order = domain_elimination_order(len(self.subspace), self._subspace_edges())
+        self.block_solver = BlockCholesky(sizes, self._subspace_edges(), self.order) if self.F == 0 else None
+        self.sparse_solver = SparseSolver(solver) if self.F > 0 else None
+        self.build_seconds = time.perf_counter() - t_start
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+    @staticmethod
+    def _labels(cfg, body):
+        from .partition import partition_from_regions, partition_vertices
+        dcfg = cfg.get("domains") or {"count": 1}
+        if not isinstance(dcfg, dict):
+            raise SceneError(f"model.domains: expected {{count: N}} or {{regions: ...}}, got {dcfg!r}")
+        if "regions" in dcfg:
+            regions = dcfg["regions"]
+            labels = partition_from_regions(body.vertices, body.tets, regions)
+            names = list(regions) if isinstance(regions, dict) else [f"domain_{i}" for i in range(len(regions))]
+            return labels, names
+        count = dcfg.get("count", 1)
+        if not isinstance(count, int) or count < 1:
+            raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
+        labels = partition_vertices(body.vertices, body.tets, count, seed=int(dcfg.get("seed", 0)))
+        return labels, [f"domain_{i}" for i in range(count)]
+
+    @staticmethod
+    def _full_space_set(cfg, names):
+        out = set()
+        for item in cfg.get("full_space_domains") or []:
+            if isinstance(item, int) and 0 <= item < len(names):
+                out.add(item)
+            elif item in names:
+                out.add(names.index(item))
+            else:
+                raise SceneError(f"model.full_space_domains: unknown domain {item!r} (domains: {names})")
+        return out
+
+    def _coupling_springs(self, ctets):
+        """Edges of coupling elements whose two vertices lie in different domains."""
+        pairs = ctets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2)
+        pairs = np.sort(pairs, axis=1)
+        pairs = pairs[self.vertex_domain[pairs[:, 0]] != self.vertex_domain[pairs[:, 1]]]
+        return np.unique(pairs, axis=0)
+
+    def _subspace_edges(self):
+        edges = []
+        for i, j in np.asarray(self.partition.graph_edges, dtype=np.int64).reshape(-1, 2):
+            ki, kj = self.domain_kind[i], self.domain_kind[j]
+            if ki[0] == "sub" and kj[0] == "sub":
+                edges.append((ki[1], kj[1]))
+        return np.array(edges, dtype=np.int64).reshape(-1, 2)
+
+    def _build_interface_maps(self):
+        """Static part of J for the interface vertices: generalised columns, full flags."""
+        iv = self.iface
+        n_I = len(iv)
+        self.s_max = max([dom.n_dofs for dom in self.subspace] + [3])
+        self.J_cols = np.full((n_I, self.s_max), -1, dtype=np.int64)
+        self.J_full = self.is_full_vertex[iv]
+        self.J_icol = np.full((n_I, 3), -1, dtype=np.int64)
+        self.iface_groups = []         # per subspace domain: (rows in iface, local vertex ids)
+        for k, dom in enumerate(self.subspace):
+            rows = np.flatnonzero(self.vertex_domain[iv] == dom.index)
+            self.iface_groups.append((rows, self.vertex_local[iv[rows]]))
+            self.J_cols[rows, :dom.n_dofs] = self.sub_offsets[k] + np.arange(dom.n_dofs)
+        full_rows = np.flatnonzero(self.J_full)
+        fdof = self.full_dof_of_vertex[iv[full_rows]]
+        free_rows = full_rows[fdof >= 0]
+        self.J_cols[free_rows, :3] = self.S + 3 * fdof[fdof >= 0, None] + np.arange(3)
+        self.F_I = len(free_rows)
+        self.J_icol[free_rows] = 3 * np.arange(self.F_I)[:, None] + np.arange(3)
+        self.iface_full_cols = self.J_cols[free_rows, :3].reshape(-1) - self.S      # (3 F_I,)
+        self.J_static = np.zeros((n_I, 3, self.s_max))
+        self.J_static[free_rows, :, :3] = np.eye(3)
+
+    # ------------------------------------------------------------------ state
+    def reset(self):
+        self.q = [np.zeros(dom.r) for dom in self.subspace]
+        self.qd = [np.zeros(dom.r) for dom in self.subspace]
+        self.frames = FrameState.at_rest([dom.cbar for dom in self.subspace])
+        self.x_full = self.body.vertices.copy()          # only full-space rows are used
+        self.v_full = np.zeros_like(self.x_full)
+        self.last = {"elastic": 0.0}
+        self.stats = {}
+
+    @property
+    def n_dofs(self):
+        return self.n_gen
+
+    def set_rigid_velocity(self, linear, angular, center=None):
+        """Give the whole body a rigid velocity v + w x (x - center) (default: its centre of mass)."""
+        linear, angular = np.asarray(linear, float), np.asarray(angular, float)
+        if center is None:
+            center = (self.vertex_mass[:, None] * self.vertex_positions()).sum(0) / self.vertex_mass.sum()
+        mv = self.movable
+        self.frames.v[mv] = linear + np.cross(angular, self.frames.c[mv] - center)
+        self.frames.w[mv] = angular
+        self.frames.w_prev[mv] = angular
+        xf = self.x_full
+        self.v_full = np.where(self.is_full_vertex[:, None], linear + np.cross(angular, xf - center), 0.0)
+        self.v_full[self.body.pinned] = 0.0
+
+    def get_Q(self):
+        Q = np.zeros(self.n_gen)
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k]
+            Q[o:o + dom.r] = self.qd[k]
+            if dom.movable:
+                Q[o + dom.r:o + dom.r + 3] = self.frames.v[k]
+                Q[o + dom.r + 3:o + dom.r + 6] = self.frames.w[k]
+        if self.F:
+            Q[self.S:] = self._full_free(self.v_full)
+        return Q
+
+    def _full_free(self, a):
+        return a.reshape(-1)[self.ff_pattern.free_dof >= 0]
+
+    def _full_expand(self, a_free):
+        out = np.zeros(3 * len(self.body.vertices))
+        out[self.ff_pattern.free_dof >= 0] = a_free
+        return out.reshape(-1, 3)
+
+    def _predict(self, Q, base):
+        """State reached from the step-start state `base` with velocities Q over dt."""
+        q0, frames0, x0 = base
+        dt = self.dt
+        q, qd = [], []
+        v = frames0.v.copy()
+        w = frames0.w.copy()
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k]
+            qd.append(Q[o:o + dom.r].copy())
+            q.append(q0[k] + dt * qd[-1])
+            if dom.movable:
+                v[k] = Q[o + dom.r:o + dom.r + 3]
+                w[k] = Q[o + dom.r + 3:o + dom.r + 6]
+        frames = frames0.copy()
+        frames.advance(v, w, dt, self.movable)
+        frames.w_prev = frames0.w.copy()
+        if self.F:
+            v_full = self._full_expand(Q[self.S:])
+            x_full = x0 + dt * v_full
+        else:
+            v_full, x_full = self.v_full, x0
+        return q, qd, frames, x_full, v_full
+
+    # ------------------------------------------------------------------ positions
+    def _domain_world(self, k, local_ids, q, frames):
+        dom = self.subspace[k]
+        p = dom.r_local[local_ids] + np.einsum("lia,a->li", dom.U3[local_ids], q[k])
+        return frames.c[k] + p @ frames.R[k].T
+
+    def positions_of(self, ids, q=None, frames=None, x_full=None):
+        """World positions (len(ids), 3) of the given global vertex ids."""
+        q = self.q if q is None else q
+        frames = self.frames if frames is None else frames
+        x_full = self.x_full if x_full is None else x_full
+        ids = np.asarray(ids, dtype=np.int64)
+        out = np.empty((len(ids), 3))
+        dom_of = self.vertex_domain[ids]
+        for i, (kind, k) in enumerate(self.domain_kind):
+            sel = np.flatnonzero(dom_of == i)
+            if sel.size == 0:
+                continue
+            if kind == "sub":
+                out[sel] = self._domain_world(k, self.vertex_local[ids[sel]], q, frames)
+            else:
+                out[sel] = x_full[ids[sel]]
+        return out
+
+    def vertex_positions(self):
+        return self.positions_of(np.arange(len(self.body.vertices)))
+
+    def vertex_velocities(self):
+        """World velocities (n_verts, 3): v + w x (x - c) + R U qd, or the full-space ones."""
+        out = self.v_full.copy()
+        for k, dom in enumerate(self.subspace):
+            ids = dom.vertices
+            x = self._domain_world(k, np.arange(len(ids)), self.q, self.frames)
+            out[ids] = (self.frames.v[k] + np.cross(self.frames.w[k], x - self.frames.c[k])
+                        + (dom.U @ self.qd[k]).reshape(-1, 3) @ self.frames.R[k].T)
+        return out
+
+    # ------------------------------------------------------------------ forces
+    def _interface_J(self, q, frames):
+        """J values (n_I, 3, s_max) and world positions (n_I, 3) of the interface vertices."""
+        J = self.J_static.copy()
+        x = np.empty((len(self.iface), 3))
+        for k, (rows, loc) in enumerate(self.iface_groups):
+            if rows.size == 0:
+                continue
+            dom = self.subspace[k]
+            R = frames.R[k]
+            x[rows] = self._domain_world(k, loc, q, frames)
+            J[rows, :, :dom.r] = np.einsum("ij,ljb->lib", R, dom.U3[loc])
+            if dom.movable:
+                J[rows, :, dom.r:dom.r + 3] = np.eye(3)
+                J[rows, :, dom.r + 3:dom.r + 6] = -skew_batch(x[rows] - frames.c[k])
+        full_rows = np.flatnonzero(self.J_full)
+        x[full_rows] = self.x_full_state[self.iface[full_rows]]
+        return J, x
+
+    def _evaluate(self, q, frames, x_full, want_hessian=True, project=False):
+        """Generalised internal force G (n_gen,), tangent blocks and energy at a state."""
+        t0 = time.perf_counter()
+        self.x_full_state = x_full
+        G = np.zeros(self.n_gen)
+        K_ss = np.zeros((self.S, self.S)) if want_hessian else None
+        energy = 0.0
+        for k, dom in enumerate(self.subspace):
+            e, g, Kr = dom.reduced_tangent(q[k], want_hessian)
+            o = self.sub_offsets[k]
+            G[o:o + dom.r] += g
+            if want_hessian:
+                K_ss[o:o + dom.r, o:o + dom.r] += Kr
+            energy += e
+        t1 = time.perf_counter()
+        K_sI = np.zeros((self.S, 3 * self.F_I)) if want_hessian else None
+        K_ff = None
+        if self.F:
+            e_f, f_f, K_f = element_forces(x_full, self.body.tets[self.ff_elements], self.ff_geom,
+                                           self.body.material, want_hessian, project)
+            # Only the full-space domain elements act here; coupling elements go through J.
+            nf = self.n_full_elems
+            alive = np.concatenate([fd.alive for fd in self.full]).astype(float)
+            f_f[:nf] *= alive[:, None, None]
+            f_f[nf:] = 0.0
+            energy += float((e_f[:nf] * alive).sum())
+            G[self.S:] += self._full_free(assemble_vector(self.body.tets[self.ff_elements], f_f, len(self.body.vertices)))
+            if want_hessian:
+                K_f[:nf] *= alive[:, None, None]
+                self._ff_full_K = K_f           # coupling rows are overwritten below
+        # Coupling elements (world frame).
+        J, x_I = self._interface_J(q, frames)
+        if self.coupling_kind == "element":
+            e_c, f_c, K_c = element_forces(x_I, self.c_elem, self.c_geom, self.body.material,
+                                           want_hessian, project)
+        else:
+            e_c, f_c, K_c = spring_forces(x_I, self.c_elem, self.spring_rest, self.spring_k, want_hessian)
+        energy += float(e_c.sum())
+        if want_hessian:
+            project_coupling(self.c_elem, f_c, K_c, J, self.J_cols, self.J_full, self.J_icol, G, K_ss, K_sI)
+            if self.F:
+                K_f[self.n_full_elems:] = self._coupling_full_block(K_c)
+                K_ff = assemble_matrix(self.ff_pattern, K_f)
+        else:
+            project_forces(self.c_elem, f_c, J, self.J_cols, G)
+        t2 = time.perf_counter()
+        self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
+        return G, K_ss, K_sI, K_ff, energy, J, x_I
+
+    def _coupling_full_block(self, K_c):
+        """Coupling element matrices with only full-full vertex pairs kept (others via J)."""
+        if self.coupling_kind != "element":
+            raise SceneError("spring coupling with full-space domains is not supported")
+        full = self.J_full[self.c_elem]                          # (n_c, 4)
+        mask = np.repeat(full, 3, axis=1)
+        return K_c * (mask[:, :, None] & mask[:, None, :])
+
+    def _external(self, f_ext, J, x_I, frames, q):
+        """J^T f_ext at the step start (n_gen,)."""
+        Fext = np.zeros(self.n_gen)
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k]
+            fk = f_ext[dom.vertices]
+            R = frames.R[k]
+            Fext[o:o + dom.r] = dom.U.T @ (fk @ R).reshape(-1)
+            if dom.movable:
+                x = self._domain_world(k, np.arange(len(dom.vertices)), q, frames)
+                Fext[o + dom.r:o + dom.r + 3] = fk.sum(0)
+                Fext[o + dom.r + 3:o + dom.r + 6] = np.cross(x - frames.c[k], fk).sum(0)
+        if self.F:
+            Fext[self.S:] = self._full_free(f_ext)
+        return Fext
+
+    def _mass_blocks(self, frames):
+        """Mgen's subspace part (S, S) dense, at the current rotations."""
+        M = np.zeros((self.S, self.S))
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k]
+            M[o:o + dom.r, o:o + dom.r] = np.eye(dom.r)
+            if dom.movable:
+                R = frames.R[k]
+                M[o + dom.r:o + dom.r + 3, o + dom.r:o + dom.r + 3] = dom.total_mass * np.eye(3)
+                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ dom.inertia0 @ R.T
+        return M
+
+    def _explicit_terms(self, frames, q, qd):
+        """Fictitious (q rows) and gyroscopic (w rows) forces at the step start."""
+        F = np.zeros(self.n_gen)
+        for k, dom in enumerate(self.subspace):
+            if not dom.movable:
+                continue
+            o = self.sub_offsets[k]
+            R = frames.R[k]
+            omega = R.T @ frames.w[k]
+            alpha = R.T @ (frames.w[k] - frames.w_prev[k]) / self.dt
+            F[o:o + dom.r] = fictitious_forces(dom.tensors, q[k], qd[k], omega, alpha)
+            Iw = R @ dom.inertia0 @ R.T
+            F[o + dom.r + 3:o + dom.r + 6] = -np.cross(frames.w[k], Iw @ frames.w[k])
+        return F
+
+    # ------------------------------------------------------------------ linear algebra
+    def _system(self, M_ss, K_ss, K_sI, K_ff, D):
+        """A = Mgen + dt Dgen + dt^2 K as (dense A_ss, dense A_sI, sparse-data A_ff)."""
+        dt = self.dt
+        A_ss = M_ss + dt * D[0] + dt * dt * K_ss
+        A_sI = dt * D[1] + dt * dt * K_sI if self.F else None
+        A_ff = self.M_ff + dt * D[2] + dt * dt * K_ff if self.F else None
+        return A_ss, A_sI, A_ff
+
+    def _solve(self, A_ss, A_sI, A_ff, rhs):
+        t0 = time.perf_counter()
+        if self.F == 0:
+            self.block_solver.factor(A_ss)
+            t1 = time.perf_counter()
+            x = self.block_solver.solve(rhs)
+        else:
+            cols = self.iface_full_cols
+            B = sp.csr_matrix((np.ravel(A_sI), (np.repeat(np.arange(self.S), len(cols)), np.tile(cols, self.S))),
+                              shape=(self.S, self.F))
+            A = sp.bmat([[sp.csr_matrix(A_ss), B], [B.T, self.ff_pattern.matrix(A_ff)]], format="csr")
+            self.sparse_solver.factor(A)
+            t1 = time.perf_counter()
+            x = self.sparse_solver.solve(rhs)
+        t2 = time.perf_counter()
+        self.timing["factor_ms"] = self.timing.get("factor_ms", 0.0) + 1e3 * (t1 - t0)
+        self.timing["solve_ms"] = self.timing.get("solve_ms", 0.0) + 1e3 * (t2 - t1)
+        return x
+
+    def _matvec(self, A_ss, A_sI, A_ff, Q):
+        out = np.zeros_like(Q)
+        out[:self.S] = A_ss @ Q[:self.S]
+        if self.F:
+            cols = self.iface_full_cols
+            out[:self.S] += A_sI @ Q[self.S:][cols]
+            out[self.S:] = self.ff_pattern.matrix(A_ff) @ Q[self.S:]
+            np.add.at(out[self.S:], cols, A_sI.T @ Q[:self.S]) if len(cols) else None
+        return out
+
+    # ------------------------------------------------------------------ step
+    def step(self, f_ext):
+        t0 = time.perf_counter()
+        dt = self.dt
+        base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy())
+        Qn = self.get_Q()
+        G, K_ss, K_sI, K_ff, energy, J, x_I = self._evaluate(self.q, self.frames, self.x_full)
+        timing = dict(self.timing)
+        M_ss = self._mass_blocks(self.frames)
+        D = (self.alpha * M_ss + self.beta * K_ss,
+             self.beta * K_sI if self.F else None,
+             self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
+        Fn = self._external(f_ext, J, x_I, self.frames, self.q) + self._explicit_terms(self.frames, self.q, self.qd)
+        Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
+
+        def residual(Q, G_k):
+            return self._matvec(*Mgen, Q - Qn) + dt * (self._matvec(*D, Q) + G_k - Fn)
+
+        if self.scheme == "two_step":
+            Q = self._two_step(M_ss, K_ss, D, Qn, G, Fn)
+            iterations = 1
+        else:
+            Q = np.zeros_like(Qn)
+            iterations, cuts = 0, 0
+            r = residual(Q, G)
+            r0 = float(np.linalg.norm(r))
+            for it in range(self.newton_iterations):
+                A = self._system(M_ss, K_ss, K_sI, K_ff, D)
+                dQ = self._solve(*A, -r)
+                iterations += 1
+                step_len = 1.0
+                if self.newton_iterations > 1 and self.line_search:
+                    phi0 = self._potential(Q, Qn, Mgen, D, Fn, energy)
+                    slope = float(r @ dQ)
+                    while step_len > 1e-4:
+                        trial = Q + step_len * dQ
+                        e_t = self._energy_at(trial, base)
+                        if self._potential(trial, Qn, Mgen, D, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
+                            break
+                        step_len *= 0.5
+                        cuts += 1
+                Q = Q + step_len * dQ
+                if it + 1 == self.newton_iterations:
+                    break
+                q, _, frames, x_full, _ = self._predict(Q, base)
+                G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
+                r = residual(Q, G)
+                if float(np.linalg.norm(r)) <= self.tolerance * max(r0, 1e-300):
+                    break
+        q, qd, frames, x_full, v_full = self._predict(Q, base)
+        self.q, self.qd, self.frames = q, qd, frames
+        if self.F:
+            self.x_full, self.v_full = x_full, v_full
+        self.last = {"elastic": energy}
+        total = 1e3 * (time.perf_counter() - t0)
+        self.stats = {"newton_iterations": iterations, "domain_ms": timing["domain_ms"],
+                      "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
+                      "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
+                      "domains": len(self.subspace) + len(self.full)}
+        self.timing = {}
+        return self.stats
+
+    def _potential(self, Q, Qn, Mgen, D, Fn, elastic):
+        dQ = Q - Qn
+        return (0.5 * dQ @ self._matvec(*Mgen, dQ) + 0.5 * self.dt * Q @ self._matvec(*D, Q)
+                + elastic - self.dt * Fn @ Q)
+
+    def _energy_at(self, Q, base):
+        q, _, frames, x_full, _ = self._predict(Q, base)
+        return self._evaluate(q, frames, x_full, want_hessian=False)[4]
+
+    def _two_step(self, M_ss, K_ss, D, Qn, G, Fn):
+        """The paper's foil: rigid DOFs with deformation frozen, then deformation with
+        frames frozen: block Gauss-Seidel on the one-step system."""
+        if self.F:
+            raise SceneError("the two-step scheme is available for subspace domains only")
+        dt = self.dt
+        A = M_ss + dt * D[0] + dt * dt * K_ss
+        b = M_ss @ Qn + dt * (Fn - G)
+        rigid = np.zeros(self.S, dtype=bool)
+        for k, dom in enumerate(self.subspace):
+            if dom.movable:
+                o = self.sub_offsets[k] + dom.r
+                rigid[o:o + 6] = True
+        Q = Qn.copy()
+        rr, dd = np.flatnonzero(rigid), np.flatnonzero(~rigid)
+        if rr.size:
+            Q[rr] = sla.solve(A[np.ix_(rr, rr)], b[rr] - A[np.ix_(rr, dd)] @ Qn[dd], assume_a="pos")
+        Q[dd] = sla.solve(A[np.ix_(dd, dd)], b[dd] - A[np.ix_(dd, rr)] @ Q[rr], assume_a="pos")
+        return Q
+
+    def system_matrix(self):
+        """The unified matrix A (n_gen, n_gen) at the current state, dense (diagnostics, tests)."""
+        G, K_ss, K_sI, K_ff, _, _, _ = self._evaluate(self.q, self.frames, self.x_full)
+        M_ss = self._mass_blocks(self.frames)
+        D = (self.alpha * M_ss + self.beta * K_ss, self.beta * K_sI if self.F else None,
+             self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
+        A_ss, A_sI, A_ff = self._system(M_ss, K_ss, K_sI, K_ff, D)
+        if not self.F:
+            return A_ss
+        A = np.zeros((self.n_gen, self.n_gen))
+        A[:self.S, :self.S] = A_ss
+        A[:self.S, self.S + self.iface_full_cols] = A_sI
+        A[self.S + self.iface_full_cols, :self.S] = A_sI.T
+        A[self.S:, self.S:] = self.ff_pattern.matrix(A_ff).toarray()
+        return A
+
+    # ------------------------------------------------------------------ outputs
+    def elastic_energy(self):
+        return self._evaluate(self.q, self.frames, self.x_full, want_hessian=False)[4]
+
+    def kinetic_energy(self):
+        v = self.vertex_velocities()
+        return 0.5 * float((self.vertex_mass * (v * v).sum(1)).sum())
+
+    def domain_poses(self):
+        out = np.zeros((len(self.domain_kind), 7))
+        for i, (kind, k) in enumerate(self.domain_kind):
+            if kind == "sub":
+                out[i, :3] = self.frames.c[k]
+                out[i, 3:] = quat_from_matrix(self.frames.R[k])
+            else:
+                from ..fem.full_model import best_fit_pose
+                ids = self.full[k].vertices
+                out[i] = best_fit_pose(self.body.vertices[ids], self.x_full[ids], self.vertex_mass[ids])
+        return out
+
+    def domain_names(self):
+        return list(self.partition.names)
+
+    def cut_elements(self, tet_ids):
+        """Remove elements of full-space domains (cutting); returns how many were removed."""
+        tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        removed = 0
+        for fd in self.full:
+            hit = np.isin(fd.elements, tet_ids) & fd.alive
+            fd.alive[hit] = False
+            removed += int(hit.sum())
+        return removed
