@@ -36,6 +36,20 @@ class SubspaceDomain:
         self.tensors = fictitious_tensors(self.U, self.r_local, self.mass) if self.movable else None
         self.U3 = self.U.reshape(len(self.vertices), 3, -1)       # (n_i, 3, r) view per vertex
 
+    def inertia(self, q):
+        """Inertia about the centre of mass in the domain frame at deformation q: (3, 3).
+
+        I(q) = sum m (|p|^2 I - p p^T), p = r + U q, a quadratic in q from the
+        fictitious-force tensors (B1[a] = sum m u_a r^T, B2[a, b] = sum m u_a u_b^T), so a
+        spinning domain that stretches slows down as it should.
+        """
+        if self.tensors is None:
+            return self.inertia0
+        B1 = np.einsum("a,aij->ij", q, self.tensors.B1)
+        B2 = np.einsum("a,b,abij->ij", q, q, self.tensors.B2)
+        lin = B1 + B1.T
+        return self.inertia0 + (np.trace(lin) + np.trace(B2)) * np.eye(3) - lin - B2
+
     @property
     def r(self):
         return self.U.shape[1]

@@ -29,11 +29,11 @@ from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
 from ..fem.elements import TetGeometry, element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
-from ..rotations import quat_from_matrix
+from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
 from .coupling import project_coupling, project_forces, skew_batch, spring_forces
 from .domains import FullDomain, build_subspace_domain
-from .frames import FrameState, fictitious_forces
+from .frames import FrameState, _orthonormalise, fictitious_forces
 
 
 def _subset_geometry(geom, ids):
@@ -271,8 +271,16 @@ class ReducedModel:
         return out.reshape(-1, 3)
 
     def _predict(self, Q, base):
-        """State reached from the step-start state `base` with velocities Q over dt."""
-        q0, frames0, x0 = base
+        """State reached from the step-start state `base` with velocities Q over dt.
+
+        Without a global motion Q holds inertial velocities and frame centres move on
+        straight lines. With one (free bodies, see _global_motion) Q holds velocities
+        relative to the body's mean rigid motion (C, V, W): every frame centre and
+        full-space vertex is carried rigidly by exp(dt W) about C, plus its relative
+        motion, so a rigid spin is integrated exactly instead of spiralling in under
+        backward Euler.
+        """
+        q0, frames0, x0, gm = base
         dt = self.dt
         q, qd = [], []
         v = frames0.v.copy()
@@ -285,14 +293,123 @@ class ReducedModel:
                 v[k] = Q[o + dom.r:o + dom.r + 3]
                 w[k] = Q[o + dom.r + 3:o + dom.r + 6]
         frames = frames0.copy()
-        frames.advance(v, w, dt, self.movable)
-        frames.w_prev = frames0.w.copy()
         if self.F:
             v_full = self._full_expand(Q[self.S:])
-            x_full = x0 + dt * v_full
         else:
-            v_full, x_full = self.v_full, x0
+            v_full = self.v_full
+        if gm is None:
+            frames.advance(v, w, dt, self.movable)
+            x_full = x0 + dt * v_full if self.F else x0
+        else:
+            C, V, W = gm[:3]
+            Rg = exp_so3(dt * W)
+            C1 = C + dt * V
+            mv = self.movable
+            rho = Rg @ (frames0.c[mv] - C + dt * v[mv]).T
+            frames.c[mv] = C1 + rho.T
+            frames.v[mv] = V + np.cross(W, rho.T) + v[mv] @ Rg.T
+            frames.w[mv] = W + w[mv] @ Rg.T
+            for k in np.flatnonzero(mv):        # loop over domains, not vertices
+                frames.R[k] = _orthonormalise(Rg @ exp_so3(dt * w[k]) @ frames0.R[k])
+            if self.F:
+                rho_f = (x0 - C + dt * v_full) @ Rg.T
+                x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
+                v_full = np.where(self.is_full_vertex[:, None], V + np.cross(W, rho_f) + v_full @ Rg.T, 0.0)
+            else:
+                x_full = x0
+        # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
+        # inertia at the predicted rotation; re-express that momentum with the inertia the
+        # domain really has after the step, so torque-free domains keep h exactly.
+        for k in np.flatnonzero(self.movable):
+            dom = self.subspace[k]
+            Rp = exp_so3(dt * frames0.w[k]) @ frames0.R[k]
+            h = Rp @ dom.inertia(q0[k]) @ Rp.T @ (frames.w[k] if gm is None else gm[2] + w[k])
+            frames.w[k] = np.linalg.solve(frames.R[k] @ dom.inertia(q[k]) @ frames.R[k].T, h)
+        if gm is not None:
+            # Carrying the state by exp(dt W) also turns its angular momentum by that
+            # rotation; where L is not parallel to W (products of inertia) this is a
+            # spurious precession, first order in dt. Restore the balance of angular
+            # momentum, L' = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW
+            # about the mass centre (linear momentum unchanged).
+            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full)
+            dW = np.linalg.solve(I1, gm[3] - L1)
+            self._dW = float(np.linalg.norm(dW))
+            frames.v[mv] += np.cross(dW, frames.c[mv] - C1)
+            frames.w[mv] += dW
+            if self.F:
+                v_full = np.where(self.is_full_vertex[:, None], v_full + np.cross(dW, x_full - C1), v_full)
+        frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
+
+    def _global_motion(self):
+        """(C, V, W, L): mass centre, velocity, angular velocity and angular momentum of
+        the whole body, W fitted to L (frames and full-space vertices), or None for a body
+        held by pins."""
+        if self.body.pinned.size or not self.movable.all():
+            return None
+        C, V, L, I = self._momentum(self.frames, self.q, self.x_full, self.v_full)
+        return C, V, np.linalg.solve(I, L), L
+
+    def _momentum(self, fr, q, x_full, v_full):
+        """Mass centre C, its velocity V, angular momentum L about C and inertia I (3, 3)
+        of a state, from the domain frames (the deformation's own angular momentum is
+        second order because U is mass-orthogonal to rotations) and full-space vertices."""
+        m_d = np.array([dom.total_mass for dom in self.subspace])
+        full = self.is_full_vertex
+        m_f = self.vertex_mass[full]
+        x_f, v_f = x_full[full], v_full[full]
+        m = m_d.sum() + m_f.sum()
+        C = ((m_d[:, None] * fr.c).sum(0) + (m_f[:, None] * x_f).sum(0)) / m
+        V = ((m_d[:, None] * fr.v).sum(0) + (m_f[:, None] * v_f).sum(0)) / m
+        rho, rho_f = fr.c - C, x_f - C
+        I_d = fr.R @ np.stack([dom.inertia(qk) for dom, qk in zip(self.subspace, q)]) @ fr.R.transpose(0, 2, 1)
+        I = (I_d.sum(0) + ((m_d * (rho * rho).sum(1)).sum() + (m_f * (rho_f * rho_f).sum(1)).sum()) * np.eye(3)
+             - np.einsum("i,ij,ik->jk", m_d, rho, rho) - np.einsum("i,ij,ik->jk", m_f, rho_f, rho_f))
+        L = (np.cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)
+             + np.cross(rho_f, m_f[:, None] * (v_f - V)).sum(0))
+        return C, V, L, I
+
+    def _rigid_Q(self, gm, angular_only=False):
+        """Generalised velocities of the rigid motion (V, W) about C (n_gen,);
+        angular_only: W on the domains' angular rows, zero elsewhere."""
+        C, V, W = gm[:3]
+        Q = np.zeros(self.n_gen)
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k] + dom.r
+            Q[o + 3:o + 6] = W
+            if not angular_only:
+                Q[o:o + 3] = V + np.cross(W, self.frames.c[k] - C)
+        if self.F and not angular_only:
+            Q[self.S:] = self._full_free(V + np.cross(W, self.x_full - C))
+        return Q
+
+    def _global_fictitious(self, gm):
+        """Centrifugal force of the frame rotating with W on frame centres and full-space
+        vertices (n_gen,). The angular rows take W through the momentum form, and the
+        Coriolis force through _coriolis_rotate."""
+        C, V, W = gm[:3]
+        F = np.zeros(self.n_gen)
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k] + dom.r
+            F[o:o + 3] = -dom.total_mass * np.cross(W, np.cross(W, self.frames.c[k] - C))
+        if self.F:
+            f = -self.vertex_mass[:, None] * np.cross(W, np.cross(W, self.x_full - C))
+            F[self.S:] = self._full_free(f)
+        return F
+
+    def _coriolis_rotate(self, gm, Q_rel):
+        """Exact flow of the Coriolis force -2 m W x v over dt: rotate the relative linear
+        velocities by exp(-2 dt W). Explicit Euler would inflate |v_rel| every step (the
+        force is gyroscopic) and pump energy and angular momentum into a spinning body;
+        the rotation keeps |v_rel| and sum m v_rel = 0 exactly."""
+        Rc = exp_so3(-2.0 * self.dt * gm[2])
+        Q = Q_rel.copy()
+        for k, dom in enumerate(self.subspace):
+            o = self.sub_offsets[k] + dom.r
+            Q[o:o + 3] = Rc @ Q_rel[o:o + 3]
+        if self.F:
+            Q[self.S:] = self._full_free(self._full_expand(Q_rel[self.S:]) @ Rc.T)
+        return Q
 
     # ------------------------------------------------------------------ positions
     def _domain_world(self, k, local_ids, q, frames):
@@ -423,20 +540,24 @@ class ReducedModel:
             Fext[self.S:] = self._full_free(f_ext)
         return Fext
 
-    def _mass_blocks(self, frames):
-        """Mgen's subspace part (S, S) dense, at the current rotations."""
+    def _mass_blocks(self, frames, predicted=False):
+        """Mgen's subspace part (S, S) dense. predicted=True puts each domain's inertia at
+        the rotation exp(dt w) R it will have after the step: the angular rows are in
+        momentum form I(t + dt) w' = I(t) w + dt tau, which conserves angular momentum
+        where an explicit gyroscopic term -w x I w gains it."""
         M = np.zeros((self.S, self.S))
         for k, dom in enumerate(self.subspace):
             o = self.sub_offsets[k]
             M[o:o + dom.r, o:o + dom.r] = np.eye(dom.r)
             if dom.movable:
-                R = frames.R[k]
+                R = exp_so3(self.dt * frames.w[k]) @ frames.R[k] if predicted else frames.R[k]
                 M[o + dom.r:o + dom.r + 3, o + dom.r:o + dom.r + 3] = dom.total_mass * np.eye(3)
-                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ dom.inertia0 @ R.T
+                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ dom.inertia(self.q[k]) @ R.T
         return M
 
     def _explicit_terms(self, frames, q, qd):
-        """Fictitious (q rows) and gyroscopic (w rows) forces at the step start."""
+        """Fictitious forces (q rows) at the step start; the gyroscopic term lives in the
+        momentum form of the angular rows (see _mass_blocks)."""
         F = np.zeros(self.n_gen)
         for k, dom in enumerate(self.subspace):
             if not dom.movable:
@@ -446,8 +567,6 @@ class ReducedModel:
             omega = R.T @ frames.w[k]
             alpha = R.T @ (frames.w[k] - frames.w_prev[k]) / self.dt
             F[o:o + dom.r] = fictitious_forces(dom.tensors, q[k], qd[k], omega, alpha)
-            Iw = R @ dom.inertia0 @ R.T
-            F[o + dom.r + 3:o + dom.r + 6] = -np.cross(frames.w[k], Iw @ frames.w[k])
         return F
 
     # ------------------------------------------------------------------ linear algebra
@@ -492,22 +611,38 @@ class ReducedModel:
     def step(self, f_ext):
         t0 = time.perf_counter()
         dt = self.dt
-        base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy())
+        gm = self._global_motion()
+        if gm is not None:
+            C, V, W, L = gm
+            x = self.vertex_positions()
+            tau = np.cross(x - C, f_ext).sum(0)
+            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
+        self._dW = 0.0
+        base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy(), gm)
         Qn = self.get_Q()
+        if gm is not None:
+            Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm))
         G, K_ss, K_sI, K_ff, energy, J, x_I = self._evaluate(self.q, self.frames, self.x_full)
         timing = dict(self.timing)
-        M_ss = self._mass_blocks(self.frames)
+        M_ss = self._mass_blocks(self.frames, predicted=True)
         D = (self.alpha * M_ss + self.beta * K_ss,
              self.beta * K_sI if self.F else None,
              self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
         Fn = self._external(f_ext, J, x_I, self.frames, self.q) + self._explicit_terms(self.frames, self.q, self.qd)
+        if gm is not None:
+            Fn = Fn + self._global_fictitious(gm)
         Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
+        # Momentum at the step start: Mgen(t) (Qn + Q_W) - Mgen(t + dt) Q_W, where Q_W carries
+        # the global W on the angular rows (the angular rows hold w - W when gm is used).
+        Q_W = self._rigid_Q((np.zeros(3), np.zeros(3), gm[2]), angular_only=True) if gm is not None else 0.0
+        Mgen0 = (self._mass_blocks(self.frames),) + Mgen[1:]
+        p0 = self._matvec(*Mgen0, Qn + Q_W) - self._matvec(*Mgen, Q_W + np.zeros_like(Qn))
 
         def residual(Q, G_k):
-            return self._matvec(*Mgen, Q - Qn) + dt * (self._matvec(*D, Q) + G_k - Fn)
+            return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
 
         if self.scheme == "two_step":
-            Q = self._two_step(M_ss, K_ss, D, Qn, G, Fn)
+            Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
             iterations = 1
         else:
             Q = np.zeros_like(Qn)
@@ -520,12 +655,12 @@ class ReducedModel:
                 iterations += 1
                 step_len = 1.0
                 if self.newton_iterations > 1 and self.line_search:
-                    phi0 = self._potential(Q, Qn, Mgen, D, Fn, energy)
+                    phi0 = self._potential(Q, p0, Mgen, D, Fn, energy)
                     slope = float(r @ dQ)
                     while step_len > 1e-4:
                         trial = Q + step_len * dQ
                         e_t = self._energy_at(trial, base)
-                        if self._potential(trial, Qn, Mgen, D, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
+                        if self._potential(trial, p0, Mgen, D, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
                             break
                         step_len *= 0.5
                         cuts += 1
@@ -546,27 +681,30 @@ class ReducedModel:
         self.stats = {"newton_iterations": iterations, "domain_ms": timing["domain_ms"],
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
+                      "angular_momentum_correction": self._dW,
                       "domains": len(self.subspace) + len(self.full)}
         self.timing = {}
         return self.stats
 
-    def _potential(self, Q, Qn, Mgen, D, Fn, elastic):
-        dQ = Q - Qn
-        return (0.5 * dQ @ self._matvec(*Mgen, dQ) + 0.5 * self.dt * Q @ self._matvec(*D, Q)
+    def _potential(self, Q, p0, Mgen, D, Fn, elastic):
+        """Incremental potential whose gradient is the residual: 1/2 Q.Mgen Q - p0.Q
+        + dt/2 Q.D Q + E(s(Q)) - dt Fn.Q."""
+        return (0.5 * Q @ self._matvec(*Mgen, Q) - p0 @ Q + 0.5 * self.dt * Q @ self._matvec(*D, Q)
                 + elastic - self.dt * Fn @ Q)
 
     def _energy_at(self, Q, base):
         q, _, frames, x_full, _ = self._predict(Q, base)
         return self._evaluate(q, frames, x_full, want_hessian=False)[4]
 
-    def _two_step(self, M_ss, K_ss, D, Qn, G, Fn):
+    def _two_step(self, M_ss, K_ss, D, p0, G, Fn):
         """The paper's foil: rigid DOFs with deformation frozen, then deformation with
         frames frozen: block Gauss-Seidel on the one-step system."""
         if self.F:
             raise SceneError("the two-step scheme is available for subspace domains only")
         dt = self.dt
         A = M_ss + dt * D[0] + dt * dt * K_ss
-        b = M_ss @ Qn + dt * (Fn - G)
+        b = p0 + dt * (Fn - G)
+        Qn = np.linalg.solve(M_ss, p0)         # the step-start velocities the paper freezes
         rigid = np.zeros(self.S, dtype=bool)
         for k, dom in enumerate(self.subspace):
             if dom.movable:
@@ -582,7 +720,7 @@ class ReducedModel:
     def system_matrix(self):
         """The unified matrix A (n_gen, n_gen) at the current state, dense (diagnostics, tests)."""
         G, K_ss, K_sI, K_ff, _, _, _ = self._evaluate(self.q, self.frames, self.x_full)
-        M_ss = self._mass_blocks(self.frames)
+        M_ss = self._mass_blocks(self.frames, predicted=True)
         D = (self.alpha * M_ss + self.beta * K_ss, self.beta * K_sI if self.F else None,
              self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
         A_ss, A_sI, A_ff = self._system(M_ss, K_ss, K_sI, K_ff, D)
