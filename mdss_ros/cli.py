@@ -164,7 +164,7 @@ def bench_fem_scaling(args):
               f"{r['newton_iteration_ms']:8.1f}ms {r['peak_rss_mb']:8.0f}", flush=True)
         results.append(r)
     print("  element = F, P, dP/dF and element matrices (numba, all tets); scatter = sum into CSR; "
-          "assembly = both plus residual; factor = CHOLMOD analyse+factor; solve = triangular solves")
+          "assembly = both plus residual; factor = sparse Cholesky analyse+factor (backend in the JSON); solve = triangular solves")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
         print(f"mdss bench: written {args.json}")

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from .materials import material_point
+from .material_kernels import WORK_LEN, material_point_ws
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,9 @@ def deformation_gradients(x, tets, grads):
     return np.einsum("tai,taj->tij", x[tets], grads)
 
 
+_CHUNK = 256
+
+
 @njit(cache=True, parallel=True)
 def element_kernel(x, tets, grads, volume, kind_id, params, want_hessian, project,
                    energy_out, force_out, stiff_out):
@@ -64,59 +67,77 @@ def element_kernel(x, tets, grads, volume, kind_id, params, want_hessian, projec
     x (n_verts, 3); tets (n_tets, 4); grads (n_tets, 4, 3); volume (n_tets,)
     energy_out (n_tets,); force_out (n_tets, 4, 3); stiff_out (n_tets, 12, 12) (untouched
     unless want_hessian). Row/column 3*a + i of stiff_out is vertex a, axis i.
+    Work arrays are allocated once per chunk of elements, not per element.
     """
     m = tets.shape[0]
-    for e in prange(m):
-        F = np.zeros((3, 3))
-        for a in range(4):
-            va = tets[e, a]
-            for i in range(3):
-                xi = x[va, i]
-                for j in range(3):
-                    F[i, j] += xi * grads[e, a, j]
+    n_chunks = (m + _CHUNK - 1) // _CHUNK
+    for c in prange(n_chunks):
+        F = np.empty((3, 3))
         P = np.empty((3, 3))
         C = np.empty((9, 9))
-        psi = material_point(kind_id, F, params, P, C, want_hessian, project)
-        V = volume[e]
-        energy_out[e] = V * psi
-        for a in range(4):
+        T = np.empty((9, 4, 3))
+        work = np.empty(WORK_LEN)
+        for e in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
             for i in range(3):
-                s = 0.0
                 for j in range(3):
-                    s += P[i, j] * grads[e, a, j]
-                force_out[e, a, i] = V * s
-        if want_hessian:
+                    s = 0.0
+                    for a in range(4):
+                        s += x[tets[e, a], i] * grads[e, a, j]
+                    F[i, j] = s
+            psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
+            V = volume[e]
+            energy_out[e] = V * psi
+            for a in range(4):
+                for i in range(3):
+                    s = 0.0
+                    for j in range(3):
+                        s += P[i, j] * grads[e, a, j]
+                    force_out[e, a, i] = V * s
+            if not want_hessian:
+                continue
             # T[(i,j), b, k] = sum_l C[(i,j),(k,l)] g_b[l], then contract j with g_a.
-            T = np.empty((9, 4, 3))
             for r in range(9):
                 for b in range(4):
                     for k in range(3):
-                        s = 0.0
-                        for l in range(3):
-                            s += C[r, 3 * k + l] * grads[e, b, l]
-                        T[r, b, k] = s
+                        T[r, b, k] = (C[r, 3 * k] * grads[e, b, 0] + C[r, 3 * k + 1] * grads[e, b, 1]
+                                      + C[r, 3 * k + 2] * grads[e, b, 2])
             for a in range(4):
                 for i in range(3):
                     row = 3 * a + i
+                    g0, g1, g2 = grads[e, a, 0], grads[e, a, 1], grads[e, a, 2]
                     for b in range(4):
                         for k in range(3):
-                            s = 0.0
-                            for j in range(3):
-                                s += T[3 * i + j, b, k] * grads[e, a, j]
-                            stiff_out[e, row, 3 * b + k] = V * s
+                            stiff_out[e, row, 3 * b + k] = V * (T[3 * i, b, k] * g0 + T[3 * i + 1, b, k] * g1
+                                                                + T[3 * i + 2, b, k] * g2)
 
 
-def element_forces(x, tets, geom, material, want_hessian=True, project=False):
+def element_forces(x, tets, geom, material, want_hessian=True, project=False, out=None):
     """Evaluate every element.
 
     Returns energy (n_tets,), forces (n_tets, 4, 3) and, if want_hessian,
-    stiffness (n_tets, 12, 12) (else None).
+    stiffness (n_tets, 12, 12) (else None). out: an ElementBuffers to write into
+    (the stiffness array of a large mesh is hundreds of MB; reusing it saves the
+    page faults of a fresh allocation every step).
     """
     m = len(tets)
-    energy = np.empty(m)
-    forces = np.empty((m, 4, 3))
-    stiff = np.empty((m, 12, 12)) if want_hessian else np.empty((1, 12, 12))
+    buf = out if out is not None else ElementBuffers(m, want_hessian)
+    stiff = buf.stiffness if want_hessian else np.empty((1, 12, 12))
     element_kernel(np.ascontiguousarray(x, dtype=np.float64), tets, geom.grads, geom.volume,
                    material.kind_id, material.params, want_hessian, project,
-                   energy, forces, stiff)
-    return energy, forces, (stiff if want_hessian else None)
+                   buf.energy, buf.forces, stiff)
+    return buf.energy, buf.forces, (stiff if want_hessian else None)
+
+
+class ElementBuffers:
+    """Output arrays of element_forces for n_tets elements; stiffness made on first need."""
+
+    def __init__(self, n_tets, want_hessian=True):
+        self.energy = np.empty(n_tets)
+        self.forces = np.empty((n_tets, 4, 3))
+        self._stiffness = np.empty((n_tets, 12, 12)) if want_hessian else None
+
+    @property
+    def stiffness(self):
+        if self._stiffness is None:
+            self._stiffness = np.empty((len(self.energy), 12, 12))
+        return self._stiffness

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from .assembly import assemble_matrix, assemble_vector, stiffness_pattern
-from .elements import element_forces, tet_geometry
+from .elements import ElementBuffers, element_forces, tet_geometry
 from .mass import consistent_mass_elements, lumped_mass
 
 
@@ -44,6 +44,14 @@ class FEMForceModel:
         self.mass_kind = mass
         self.M = self.pattern.matrix(self.M_data)
         self.timings = {}
+        self._buffers = None
+
+    def _buf(self):
+        # Results are consumed (assembled or summed) before the next evaluation, so one
+        # set of buffers per model is safe and spares large allocations every step.
+        if self._buffers is None:
+            self._buffers = ElementBuffers(len(self.tets), want_hessian=False)
+        return self._buffers
 
     @property
     def n_free(self):
@@ -60,16 +68,17 @@ class FEMForceModel:
         return out.reshape(self.n_verts, 3)
 
     def energy(self, x):
-        e, _, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False)
+        e, _, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False, out=self._buf())
         return float(e.sum())
 
     def forces(self, x):
-        e, fe, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False)
+        e, fe, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False, out=self._buf())
         return float(e.sum()), assemble_vector(self.tets, fe, self.n_verts)
 
     def tangent(self, x, project=False, out=None):
         t0 = time.perf_counter()
-        e, fe, Ke = element_forces(x, self.tets, self.geom, self.material, want_hessian=True, project=project)
+        e, fe, Ke = element_forces(x, self.tets, self.geom, self.material, want_hessian=True, project=project,
+                                   out=self._buf())
         t1 = time.perf_counter()
         f = assemble_vector(self.tets, fe, self.n_verts)
         K = assemble_matrix(self.pattern, Ke, out)

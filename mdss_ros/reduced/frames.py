@@ -82,7 +82,7 @@ class FrameState:
     @classmethod
     def at_rest(cls, centres):
         d = len(centres)
-        return cls(c=np.array(centres, dtype=np.float64), R=np.tile(np.eye(3), (d, 1, 1)),
+        return cls(c=np.array(centres, dtype=np.float64).reshape(d, 3), R=np.tile(np.eye(3), (d, 1, 1)),
                    v=np.zeros((d, 3)), w=np.zeros((d, 3)), w_prev=np.zeros((d, 3)))
 
     def copy(self):
