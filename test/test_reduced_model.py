@@ -144,3 +144,91 @@ def test_block_cholesky_on_a_ring_with_fill():
         b = rng.normal(size=(len(A), 2))
         np.testing.assert_allclose(bc.factor(A).solve(b), np.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
         assert len(bc.fill) >= 2      # a ring always fills when eliminated
+
+
+def _regions_scene(full_space, basis=None, modes=1000, **extra):
+    s = _scene(size=(0.4, 0.1, 0.1), cell=0.05, modes=modes,
+               domains={"regions": {"root": {"box": [[-1, -1, -1], [0.1 + 1e-6, 1, 1]]},
+                                    "rest": {"box": [[0.1 + 1e-3, -1, -1], [1, 1, 1]]}}},
+               full_space_domains=full_space, **extra)
+    if basis:
+        s["model"]["basis"] = basis
+    return s
+
+
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_full_space_domain_beside_exact_subspace_domain_reproduces_full_fem(iterations):
+    """A pinned subspace domain with a complete basis next to a full-space domain: both
+    are exact, so the coupled system must reproduce the full-space solver."""
+    integ = {"dt": 0.01, "newton_iterations": iterations}
+    red = Simulator(_regions_scene(["rest"], basis={"complete": True}, integrator=integ))
+    full = Simulator(_scene("full", size=(0.4, 0.1, 0.1), cell=0.05, integrator=integ))
+    assert red.model.F > 0 and red.model.S > 0
+    for sim in (full, red):
+        sim.gravity = np.array([0.0, 0.0, -9.81])
+        sim.set_wrench("tip", force=(0.0, 0.5, -1.0))
+        sim.step(20)
+    u_full = full.vertex_positions() - full.rest_positions()
+    u_red = red.vertex_positions() - red.rest_positions()
+    assert np.linalg.norm(u_red - u_full) <= 1e-6 * np.linalg.norm(u_full)
+
+
+def test_cutting_a_full_space_domain_releases_the_piece():
+    sim = Simulator(_regions_scene(["rest"], modes=6, integrator={"dt": 0.01}))
+    sim.gravity = np.array([0.0, 0.0, -9.81])
+    m = sim.model
+    X = sim.rest_positions()
+    centroid_x = X[sim.tetrahedra()].mean(1)[:, 0]
+    cut = np.flatnonzero((centroid_x > 0.25) & (centroid_x < 0.3))
+    assert m.cut_elements(cut) > 0
+    sim.step(30)
+    t = sim.time
+    piece = X[:, 0] > 0.3 + 1e-9
+    drop = -(sim.vertex_positions()[piece, 2] - X[piece, 2]).mean()
+    # Backward Euler free fall: sum_k k dt^2 g = g dt^2 n (n + 1) / 2.
+    n = 30
+    expected = 9.81 * 0.01 ** 2 * n * (n + 1) / 2
+    assert abs(drop - expected) < 0.02 * expected, (drop, expected, 0.5 * 9.81 * t * t)
+    root = X[:, 0] < 0.1
+    assert -(sim.vertex_positions()[root, 2] - X[root, 2]).mean() < 0.2 * expected
+
+
+def test_spring_coupling_gap_shrinks_with_stiffness():
+    gaps = []
+    for k in (1e2, 1e5):
+        sim = Simulator(_scene(domains={"count": 2}, modes=8, coupling={"kind": "spring", "stiffness": k},
+                               integrator={"dt": 0.01}))
+        sim.scene.data["body"]["damping"] = {"alpha": 5.0, "beta": 0.0}
+        sim = Simulator(sim.scene)
+        sim.set_wrench("tip", force=(0.0, 0.0, -2.0))
+        sim.step(100)
+        x = sim.vertex_positions()
+        springs = sim.model.c_verts
+        stretch = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) - sim.model.spring_rest
+        gaps.append(np.abs(stretch).max())
+        assert np.all(np.isfinite(x))
+    assert gaps[1] < 0.1 * gaps[0], gaps
+
+
+def test_two_step_is_block_gauss_seidel_on_the_one_step_system():
+    sim = Simulator(_scene(pins=False, domains={"count": 3}, modes=5, integrator={"scheme": "two_step"}))
+    m = sim.model
+    rng = np.random.default_rng(0)
+    for k in range(len(m.subspace)):
+        m.q[k] = 1e-3 * rng.normal(size=m.subspace[k].r)
+    M_ss = m._mass_blocks(m.frames)
+    G, K_ss, *_ = m._evaluate(m.q, m.frames, m.x_full)
+    D = (0 * M_ss, None, None)
+    Qn = rng.normal(size=m.n_gen) * 0.01
+    Fn = np.zeros(m.n_gen)
+    Q = m._two_step(M_ss, K_ss, D, M_ss @ Qn, G, Fn)
+    A = M_ss + m.dt ** 2 * K_ss
+    b = M_ss @ Qn - m.dt * G
+    rigid = np.zeros(m.n_gen, bool)
+    for k, dom in enumerate(m.subspace):
+        rigid[m.sub_offsets[k] + dom.r:m.sub_offsets[k] + dom.r + 6] = True
+    r_, d_ = np.flatnonzero(rigid), np.flatnonzero(~rigid)
+    # rigid rows with the deformation velocities of the step start, then deformation rows.
+    np.testing.assert_allclose(A[np.ix_(r_, r_)] @ Q[r_] + A[np.ix_(r_, d_)] @ Qn[d_], b[r_], atol=1e-10)
+    np.testing.assert_allclose(A[np.ix_(d_, d_)] @ Q[d_] + A[np.ix_(d_, r_)] @ Q[r_], b[d_], atol=1e-10)
+    assert not np.allclose(Q, np.linalg.solve(A, b))     # it is not the one-step solution
