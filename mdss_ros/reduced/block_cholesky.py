@@ -82,7 +82,7 @@ class BlockCholesky:
                 raise NotPositiveDefinite(f"diagonal block of domain {k} is not positive definite") from err
             L[(k, k)] = Lkk
             for j in self.later[k]:
-                L[(j, k)] = sla.solve_triangular(Lkk, blocks[(j, k)].T, lower=True).T
+                L[(j, k)] = sla.solve_triangular(Lkk, blocks[(j, k)].T, lower=True, check_finite=False).T
             rest = self.later[k]
             for a, i in enumerate(rest):
                 for j in rest[: a + 1]:
@@ -95,12 +95,13 @@ class BlockCholesky:
         b = np.asarray(b, dtype=np.float64)
         y = b.copy()
         for k in self.order:          # forward: L y = b
-            y[self._sl(k)] = sla.solve_triangular(self.L[(k, k)], y[self._sl(k)], lower=True)
+            y[self._sl(k)] = sla.solve_triangular(self.L[(k, k)], y[self._sl(k)], lower=True, check_finite=False)
             for j in self.later[k]:
                 y[self._sl(j)] -= self.L[(j, k)] @ y[self._sl(k)]
         x = y
         for k in self.order[::-1]:    # backward: L^T x = y
             for j in self.later[k]:
                 x[self._sl(k)] -= self.L[(j, k)].T @ x[self._sl(j)]
-            x[self._sl(k)] = sla.solve_triangular(self.L[(k, k)], x[self._sl(k)], lower=True, trans="T")
+            x[self._sl(k)] = sla.solve_triangular(self.L[(k, k)], x[self._sl(k)], lower=True, trans="T",
+                                                  check_finite=False)
         return x
