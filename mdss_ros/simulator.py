@@ -102,8 +102,13 @@ class Simulator:
         self._collider_poses[name] = (_finite3(position, "position"), np.asarray(orientation, dtype=np.float64))
 
     def external_forces(self):
-        """Per-vertex external force (n_verts, 3) for the coming step."""
-        f = self.model.vertex_mass[:, None] * self.gravity[None, :]
+        """Per-vertex external force (n_verts, 3) for the coming step, gravity included."""
+        return self.applied_forces() + self.model.vertex_mass[:, None] * self.gravity[None, :]
+
+    def applied_forces(self):
+        """Per-vertex applied loads (n_verts, 3): wrenches and point forces, no gravity
+        (models treat gravity in closed form, so a step touches only loaded vertices)."""
+        f = np.zeros((len(self.body.vertices), 3))
         for handle, (force, torque) in self._wrenches.items():
             ids = self.body.handles[handle]
             f[ids] += wrench_to_vertex_forces(self.model.positions_of(ids), self.model.vertex_mass[ids], force, torque)
@@ -115,9 +120,9 @@ class Simulator:
     def step(self, n=1):
         for _ in range(int(n)):
             t0 = time.perf_counter()
-            f_ext = self.external_forces()
+            f_app = self.applied_forces()
             t1 = time.perf_counter()
-            model_stats = self.model.step(f_ext)
+            model_stats = self.model.step(f_app, self.gravity)
             t2 = time.perf_counter()
             self.time = (self.step_count + 1) * self.dt
             self.step_count += 1

@@ -232,3 +232,18 @@ def test_two_step_is_block_gauss_seidel_on_the_one_step_system():
     np.testing.assert_allclose(A[np.ix_(r_, r_)] @ Q[r_] + A[np.ix_(r_, d_)] @ Qn[d_], b[r_], atol=1e-10)
     np.testing.assert_allclose(A[np.ix_(d_, d_)] @ Q[d_] + A[np.ix_(d_, r_)] @ Q[r_], b[d_], atol=1e-10)
     assert not np.allclose(Q, np.linalg.solve(A, b))     # it is not the one-step solution
+
+
+@pytest.mark.parametrize("pins", [True, False])
+def test_gravity_in_closed_form_equals_projected_vertex_weights(pins):
+    sim = Simulator(_scene(pins=pins, domains={"count": 3}, modes=5))
+    m = sim.model
+    rng = np.random.default_rng(4)
+    for k, dom in enumerate(m.subspace):
+        m.q[k] = 1e-2 * rng.normal(size=dom.r)
+        if dom.movable:
+            m.frames.R[k] = exp_so3(rng.normal(size=3))
+    g = np.array([0.3, -1.0, -9.81])
+    weights = m.vertex_mass[:, None] * g[None, :]
+    np.testing.assert_allclose(m._external(np.zeros_like(weights), g, m.frames, m.q),
+                               m._external(weights, None, m.frames, m.q), rtol=1e-10, atol=1e-10)

@@ -4,7 +4,7 @@ import pytest
 
 from mdss_ros import Simulator, load_scene
 
-SMALL = {"body.mesh.cell": 0.05, "model.integrator.newton_iterations": 2}
+SMALL = {"body.mesh.cell": 0.05, "model.kind": "full", "model.integrator.newton_iterations": 2}
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_point_force_lasts_its_duration(sim):
     sim.reset()
     sim.add_point_force((0.5, 0.05, 0.2), (0, 0, -1.0), duration=0.0)
     assert len(sim._point_forces) == 1
-    f = sim.external_forces() - sim.model.vertex_mass[:, None] * sim.gravity
+    f = sim.applied_forces()
     np.testing.assert_allclose(f.sum(0), [0, 0, -1.0], atol=1e-12)
     sim.step()
     assert len(sim._point_forces) == 0
@@ -75,3 +75,20 @@ def test_headless_run_command(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "input wrench" in text and "done, 60 steps" in text
     assert out.exists()
+
+
+def test_reduced_cantilever_scene_api():
+    sim = Simulator(load_scene("cantilever", overrides={"body.mesh.cell": 0.05, "model.domains.count": 2,
+                                                         "model.modes": 6}))
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    sim.step(3)
+    assert sim.domain_poses().shape == (2, 7)
+    np.testing.assert_allclose(np.linalg.norm(sim.domain_poses()[:, 3:], axis=1), 1.0)
+    st = sim.stats()
+    assert st["kind"] == "reduced" and st["domains"] == 2
+    for k in ("domain_ms", "coupling_ms", "factor_ms", "solve_ms", "step_ms"):
+        assert k in st
+    pins = sim.pinned_vertices()
+    np.testing.assert_allclose(sim.vertex_positions()[pins], sim.rest_positions()[pins], atol=1e-12)
+    assert np.allclose(sim.external_forces() - sim.applied_forces(),
+                       sim.model.vertex_mass[:, None] * sim.gravity)

@@ -38,7 +38,10 @@ class FullSpaceModel:
     def n_dofs(self):
         return self.force_model.n_free
 
-    def step(self, f_ext):
+    def step(self, f_ext, gravity=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,)."""
+        if gravity is not None:
+            f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
         self.x, self.v = self.integrator.step(self.x, self.v, f_ext)
         return self.integrator.stats
 

@@ -35,6 +35,8 @@ class SubspaceDomain:
         self.inertia0 = rest_inertia(self.r_local, self.mass)
         self.tensors = fictitious_tensors(self.U, self.r_local, self.mass) if self.movable else None
         self.U3 = self.U.reshape(len(self.vertices), 3, -1)       # (n_i, 3, r) view per vertex
+        # sum_l m_l U_l (3, r): gravity on the modes; zero for a free domain's basis.
+        self.mass_moment = np.einsum("l,lia->ia", self.mass, self.U3)
 
     def inertia(self, q):
         """Inertia about the centre of mass in the domain frame at deformation q: (3, 3).

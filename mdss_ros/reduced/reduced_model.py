@@ -524,20 +524,36 @@ class ReducedModel:
         mask = np.repeat(full, 3, axis=1)
         return K_c * (mask[:, :, None] & mask[:, None, :])
 
-    def _external(self, f_ext, J, x_I, frames, q):
-        """J^T f_ext at the step start (n_gen,)."""
+    def _external(self, f_ext, gravity, frames, q):
+        """J^T f_ext + gravity at the step start (n_gen,).
+
+        Only vertices that carry a load are reconstructed. Gravity is in closed form: on a
+        subspace domain it is m g on the frame, (sum_l m_l U_l)^T R^T g on the modes (zero
+        for a free domain, whose basis is mass-orthogonal to translations) and no torque
+        about the mass centre.
+        """
         Fext = np.zeros(self.n_gen)
+        loaded = np.flatnonzero(np.any(f_ext != 0.0, axis=1))
+        dom_of = self.vertex_domain[loaded]
+        g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
         for k, dom in enumerate(self.subspace):
             o = self.sub_offsets[k]
-            fk = f_ext[dom.vertices]
             R = frames.R[k]
-            Fext[o:o + dom.r] = dom.U.T @ (fk @ R).reshape(-1)
+            Fext[o:o + dom.r] = dom.mass_moment.T @ (R.T @ g)
             if dom.movable:
-                x = self._domain_world(k, np.arange(len(dom.vertices)), q, frames)
-                Fext[o + dom.r:o + dom.r + 3] = fk.sum(0)
+                Fext[o + dom.r:o + dom.r + 3] = dom.total_mass * g
+            ids = loaded[dom_of == dom.index]
+            if ids.size == 0:
+                continue
+            loc = self.vertex_local[ids]
+            fk = f_ext[ids]
+            Fext[o:o + dom.r] += np.einsum("lia,li->a", dom.U3[loc], fk @ R)
+            if dom.movable:
+                x = self._domain_world(k, loc, q, frames)
+                Fext[o + dom.r:o + dom.r + 3] += fk.sum(0)
                 Fext[o + dom.r + 3:o + dom.r + 6] = np.cross(x - frames.c[k], fk).sum(0)
         if self.F:
-            Fext[self.S:] = self._full_free(f_ext)
+            Fext[self.S:] = self._full_free(f_ext + self.vertex_mass[:, None] * g)
         return Fext
 
     def _mass_blocks(self, frames, predicted=False):
@@ -608,14 +624,16 @@ class ReducedModel:
         return out
 
     # ------------------------------------------------------------------ step
-    def step(self, f_ext):
+    def step(self, f_ext, gravity=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,)."""
         t0 = time.perf_counter()
         dt = self.dt
         gm = self._global_motion()
         if gm is not None:
             C, V, W, L = gm
-            x = self.vertex_positions()
-            tau = np.cross(x - C, f_ext).sum(0)
+            # Torque of the loads about the mass centre; uniform gravity has none.
+            loaded = np.flatnonzero(np.any(f_ext != 0.0, axis=1))
+            tau = np.cross(self.positions_of(loaded) - C, f_ext[loaded]).sum(0)
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
         self._dW = 0.0
         base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy(), gm)
@@ -628,7 +646,7 @@ class ReducedModel:
         D = (self.alpha * M_ss + self.beta * K_ss,
              self.beta * K_sI if self.F else None,
              self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
-        Fn = self._external(f_ext, J, x_I, self.frames, self.q) + self._explicit_terms(self.frames, self.q, self.qd)
+        Fn = self._external(f_ext, gravity, self.frames, self.q) + self._explicit_terms(self.frames, self.q, self.qd)
         if gm is not None:
             Fn = Fn + self._global_fictitious(gm)
         Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
