@@ -29,6 +29,7 @@ class SubspaceDomain:
     movable: bool
     forces: FEMForceModel
     basis_info: dict = field(default_factory=dict)
+    sampled: object = None          # SampledDomainForces once cubature is built
 
     def __post_init__(self):
         self.total_mass = float(self.mass.sum())
@@ -65,7 +66,10 @@ class SubspaceDomain:
         return self.r_local + (self.U @ q).reshape(-1, 3)
 
     def reduced_tangent(self, q, want_hessian=True):
-        """Elastic energy, U^T f_int (r,) and U^T K U (r, r) of the domain elements at q."""
+        """Elastic energy, U^T f_int (r,) and U^T K U (r, r) of the domain elements at q:
+        from the cubature samples when the domain has them, else from every element."""
+        if self.sampled is not None:
+            return self.sampled.evaluate(q, want_hessian)
         p = self.local_positions(q)
         if not want_hessian:
             e, f = self.forces.forces(p)
@@ -98,15 +102,18 @@ class FullDomain:
         return 3 * int(self.free.sum())
 
 
-def submesh_around(tets, vertices_of_domain, n_verts):
-    """Tets touching a domain's vertices and the vertex set they span.
+def submesh_around(tets, vertices_of_domain, n_verts, layers=1):
+    """The domain's vertices grown by `layers` rings of elements, and the tets inside.
 
     Returns (sub_vertices (k,) global ids, sub_tets (m, 4) local ids, keep (n_i,) local
-    ids of the domain's own vertices). The layer of neighbouring vertices lets the
-    domain's modes see a free (not clamped) interface when computed.
+    ids of the domain's own vertices). Modes computed on the grown region and then
+    restricted to the domain see an attached boundary rather than a free one: free-free
+    modes of a segment have no curvature at its ends, yet the interface carries moment.
     """
     in_dom = np.zeros(n_verts, dtype=bool)
     in_dom[vertices_of_domain] = True
+    for _ in range(layers - 1):
+        in_dom[np.unique(tets[in_dom[tets].any(axis=1)])] = True
     touching = in_dom[tets].any(axis=1)
     sub_t = tets[touching]
     sub_v = np.unique(sub_t)
@@ -115,17 +122,30 @@ def submesh_around(tets, vertices_of_domain, n_verts):
     return sub_v, local[sub_t], local[vertices_of_domain]
 
 
+def layers_for_extension(X, tets, verts, extension):
+    """Element rings that grow a domain by about extension x its diameter (at least 1)."""
+    diameter = float(np.linalg.norm(X[verts].max(0) - X[verts].min(0)))
+    edges = X[tets[:, [1, 2, 3, 2, 3, 3]]] - X[tets[:, [0, 0, 0, 1, 1, 2]]]
+    mean_edge = float(np.linalg.norm(edges, axis=2).mean())
+    return max(1, int(np.ceil(extension * diameter / max(mean_edge, 1e-300))))
+
+
 def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, basis_opts, pinned_mask):
     """Basis and local force model of one subspace domain."""
     from .modal_basis import complete_basis, modal_basis
     t0 = time.perf_counter()
+    X = body.vertices
     basis_opts = dict(basis_opts)
     complete = basis_opts.pop("complete", False)
-    X = body.vertices
+    extension = float(basis_opts.pop("extension", 0.5))
+    layers = basis_opts.pop("layers", None)
+    if layers is None:
+        layers = layers_for_extension(X, body.tets[elements] if len(elements) else body.tets, verts, extension)
+    layers = int(layers)
     m = vertex_mass[verts]
     cbar = (m[:, None] * X[verts]).sum(0) / m.sum()
     fixed_local = np.flatnonzero(pinned_mask[verts])
-    sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X))
+    sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X), layers)
     sub_local = np.full(len(X), -1, dtype=np.int64)
     sub_local[sub_v] = np.arange(len(sub_v))
     if complete:    # every free DOF: the reduced model is an exact change of basis (tests)
@@ -141,6 +161,7 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
     return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
                           mass=m, U=basis.U, movable=fixed_local.size == 0, forces=forces,
                           basis_info={"n_linear": basis.n_linear, "n_derivatives": basis.n_derivatives,
+                                      "layers": layers, "region_vertices": len(sub_v),
                                       "eigenvalues": basis.eigenvalues, "seconds": time.perf_counter() - t0})
 
 

@@ -99,7 +99,7 @@ class ReducedModel:
             self.domain_kind.append(("sub", len(self.subspace)))
             self.subspace.append(dom)
             say(f"domain {names[i]}: {len(verts)} vertices, {len(part.domain_elements[i])} elements, "
-                f"r = {dom.r}, {'free (frame + modes)' if dom.movable else 'pinned (modes only)'}, "
+                f"r = {dom.r}, basis region +{dom.basis_info['layers']} layers, {'free (frame + modes)' if dom.movable else 'pinned (modes only)'}, "
                 f"basis {dom.basis_info['seconds']:.2f} s")
         self.movable = np.array([dom.movable for dom in self.subspace], dtype=bool)
 
@@ -152,8 +152,38 @@ class ReducedModel:
         self.order = domain_elimination_order(len(self.subspace), self._subspace_edges())
         self.block_solver = BlockCholesky(sizes, self._subspace_edges(), self.order) if self.F == 0 else None
         self.sparse_solver = SparseSolver(solver) if self.F > 0 else None
-        self.build_seconds = time.perf_counter() - t_start
         self.reset()
+        self.cubature_info = self._build_cubature(cfg.get("cubature") or {}, say)
+        self.build_seconds = time.perf_counter() - t_start
+
+    def _build_cubature(self, ccfg, say):
+        """Training poses and per-domain cubature when model.cubature.samples > 0."""
+        from .cubature import build_domain_cubature
+        from .training import generate_training
+        allowed = {"samples", "tolerance", "interface", "interface_samples", "training", "seed"}
+        unknown = set(ccfg) - allowed
+        if unknown:
+            raise SceneError(f"model.cubature: unknown key(s) {sorted(unknown)} (allowed: {sorted(allowed)})")
+        samples = ccfg.get("samples", 0) or 0
+        if ccfg.get("interface", "exact") != "exact":
+            raise SceneError("model.cubature.interface: only 'exact' is available in this version")
+        if samples <= 0 or not self.subspace:
+            return {"samples": 0}
+        tcfg = dict(ccfg.get("training") or {})
+        t0 = time.perf_counter()
+        training = generate_training(self, progress=say, seed=int(ccfg.get("seed", 0)), **tcfg)
+        say(f"training: {training.n_poses} poses from the {training.source} model in {training.seconds:.1f} s")
+        info = {"samples": samples, "training_source": training.source, "training_poses": training.n_poses,
+                "training_seconds": training.seconds, "domains": []}
+        for k, dom in enumerate(self.subspace):
+            dom.sampled, d_info = build_domain_cubature(dom, training.q[k], samples, ccfg.get("tolerance", 0.0),
+                                                        seed=int(ccfg.get("seed", 0)))
+            info["domains"].append(d_info)
+            say(f"cubature {dom.name}: {d_info['samples']} of {d_info['elements']} elements, "
+                f"training error {d_info['train_error']:.2e}, held-out {d_info.get('held_out_error', float('nan')):.2e}")
+        info["seconds"] = time.perf_counter() - t0
+        self.training = training
+        return info
 
     # ------------------------------------------------------------------ setup
     @staticmethod

@@ -1,0 +1,144 @@
+"""Reduced internal forces of a subspace domain from weighted element samples.
+
+    g(q) = sum_s w_s V_s G_s^T vec(P(F_s)),        K(q) = sum_s w_s V_s G_s^T C_s G_s
+    vec(F_s) = vec(I) + G_s q,                      C_s = dP/dF at F_s
+
+For a linear tet in the domain frame, F is affine in q: G_s = d vec(F)/dq (9 x r) is
+constant, so it is precomputed (An, Kim and James 2008; DESIGN.md performance notes).
+A step evaluates P and dP/dF at the samples only (numba, no allocation in the loop) and
+forms K as one GEMM over the stacked samples. With every element a sample of weight 1
+this is exactly the domain's full reduced force and stiffness.
+
+Flattening is row-major (vec(F)[3 i + j] = F[i, j]), as in mdss_ros.fem.materials.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from ..fem.material_kernels import WORK_LEN, material_point_ws
+
+
+def sample_jacobians(U3, tets, grads):
+    """G_s = d vec(F_s)/dq for samples: (s, 9, r).
+
+    U3 (n_i, 3, r) per-vertex basis rows; tets (s, 4) local vertex ids; grads (s, 4, 3).
+    G[3 i + j, b] = sum_a U3[v_a, i, b] g_a[j].
+    """
+    G = np.einsum("saib,saj->sijb", U3[tets], grads)
+    return np.ascontiguousarray(G.reshape(len(tets), 9, U3.shape[2]))
+
+
+_CHUNK = 64
+
+
+@njit(cache=True, parallel=True)
+def sampled_kernel(G, wV, q, kind_id, params, want_hessian, energy_out, g_out, WG_out, CG_out):
+    """Per-sample energy, reduced force and the two factors of the reduced stiffness.
+
+    G (s, 9, r); wV (s,) weight times rest volume; q (r,).
+    energy_out (s,), g_out (s, r), WG_out, CG_out (s, 9, r): K = sum_s WG_s^T CG_s.
+    """
+    s_count, _, r = G.shape
+    n_chunks = (s_count + _CHUNK - 1) // _CHUNK
+    for c in prange(n_chunks):
+        F = np.empty((3, 3))
+        P = np.empty((3, 3))
+        C = np.empty((9, 9))
+        work = np.empty(WORK_LEN)
+        for s in range(c * _CHUNK, min(s_count, (c + 1) * _CHUNK)):
+            for a in range(9):
+                acc = 1.0 if a % 4 == 0 else 0.0          # vec(I) has ones at 0, 4, 8
+                for b in range(r):
+                    acc += G[s, a, b] * q[b]
+                F[a // 3, a % 3] = acc
+            psi = material_point_ws(kind_id, F, params, P, C, want_hessian, False, work)
+            w = wV[s]
+            energy_out[s] = w * psi
+            for b in range(r):
+                acc = 0.0
+                for a in range(9):
+                    acc += G[s, a, b] * P[a // 3, a % 3]
+                g_out[s, b] = w * acc
+            if want_hessian:
+                for a in range(9):
+                    for b in range(r):
+                        acc = 0.0
+                        for k in range(9):
+                            acc += C[a, k] * G[s, k, b]
+                        CG_out[s, a, b] = acc
+                        WG_out[s, a, b] = w * G[s, a, b]
+
+
+@dataclass
+class SampledDomainForces:
+    """A domain's reduced force model on weighted samples.
+
+    elements: (s,) domain-local element ids of the samples; weights (s,); G (s, 9, r);
+    volume (s,); material.
+    """
+
+    elements: np.ndarray
+    weights: np.ndarray
+    G: np.ndarray
+    volume: np.ndarray
+    material: object
+
+    @classmethod
+    def build(cls, U3, tets, grads, volume, material, elements=None, weights=None):
+        """tets (m, 4) local ids, grads (m, 4, 3), volume (m,) of ALL domain elements;
+        elements/weights select the samples (default: every element, weight 1)."""
+        if elements is None:
+            elements = np.arange(len(tets))
+        elements = np.asarray(elements, dtype=np.int64)
+        weights = np.ones(len(elements)) if weights is None else np.asarray(weights, dtype=np.float64)
+        G = sample_jacobians(U3, tets[elements], grads[elements])
+        return cls(elements, weights, G, volume[elements].copy(), material)
+
+    @property
+    def n_samples(self):
+        return len(self.elements)
+
+    def evaluate(self, q, want_hessian=True):
+        """(energy, g (r,), K (r, r) or None) at reduced coordinates q (r,)."""
+        s, _, r = self.G.shape
+        e = np.empty(s)
+        g = np.empty((s, r))
+        WG = np.empty((s, 9, r)) if want_hessian else np.empty((1, 9, r))
+        CG = np.empty((s, 9, r)) if want_hessian else np.empty((1, 9, r))
+        sampled_kernel(self.G, self.weights * self.volume, np.ascontiguousarray(q, dtype=np.float64),
+                       self.material.kind_id, self.material.params, want_hessian, e, g, WG, CG)
+        if not want_hessian:
+            return float(e.sum()), g.sum(0), None
+        K = WG.reshape(-1, r).T @ CG.reshape(-1, r)
+        return float(e.sum()), g.sum(0), K
+
+
+@njit(cache=True, parallel=True)
+def contributions(G, volume, Q, kind_id, params, out):
+    """Per-element reduced force at many poses, for cubature training.
+
+    G (m, 9, r); volume (m,); Q (T, r) training poses. out (T, r, m): column e of the
+    (T r) x m matrix whose weighted column sum is the reduced force at every pose.
+    """
+    m, _, r = G.shape
+    T = Q.shape[0]
+    n_chunks = (m + _CHUNK - 1) // _CHUNK
+    for c in prange(n_chunks):
+        F = np.empty((3, 3))
+        P = np.empty((3, 3))
+        C = np.empty((9, 9))
+        work = np.empty(WORK_LEN)
+        for e in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
+            for t in range(T):
+                for a in range(9):
+                    acc = 1.0 if a % 4 == 0 else 0.0
+                    for b in range(r):
+                        acc += G[e, a, b] * Q[t, b]
+                    F[a // 3, a % 3] = acc
+                material_point_ws(kind_id, F, params, P, C, False, False, work)
+                for b in range(r):
+                    acc = 0.0
+                    for a in range(9):
+                        acc += G[e, a, b] * P[a // 3, a % 3]
+                    out[t, b, e] = volume[e] * acc

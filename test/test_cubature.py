@@ -1,0 +1,71 @@
+"""Cubature: exactness with all elements, greedy NNLS, error falling with samples."""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.reduced.cubature import build_domain_cubature, greedy_nnls
+from mdss_ros.reduced.sampled_forces import SampledDomainForces
+from mdss_ros.reduced.training import generate_training
+
+SMALL = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 8, "gravity": [0, 0, 0]}
+
+
+@pytest.fixture(scope="module")
+def small():
+    sim = Simulator(load_scene("cantilever", overrides=SMALL))
+    training = generate_training(sim.model, n_poses=30, stride=2, hold=6, force_scale=2.0, seed=1)
+    return sim, training
+
+
+def test_every_element_with_weight_one_is_exact(small):
+    sim, training = small
+    for k, dom in enumerate(sim.model.subspace):
+        fm = dom.forces
+        sf = SampledDomainForces.build(dom.U3, fm.tets, fm.geom.grads, fm.geom.volume, fm.material)
+        for q in training.q[k][::7]:
+            e1, g1, K1 = dom.reduced_tangent(q)
+            e2, g2, K2 = sf.evaluate(q)
+            assert abs(e1 - e2) <= 1e-12 * abs(e1)
+            assert np.linalg.norm(g1 - g2) <= 1e-12 * np.linalg.norm(g1)
+            assert np.linalg.norm(K1 - K2) <= 1e-12 * np.linalg.norm(K1)
+
+
+def test_training_poses_are_deformed_and_in_best_fit_frames(small):
+    sim, training = small
+    assert training.n_poses == 30 and training.source == "full"
+    for k, dom in enumerate(sim.model.subspace):
+        assert np.abs(training.q[k]).max() > 1e-4
+    # The reconstruction from (c, R, q) is close to the snapshot it came from.
+    x = training.positions[-1]
+    xr = training.reconstructed(sim.model, training.n_poses - 1)
+    u = x - sim.rest_positions()
+    assert np.linalg.norm(xr - x) < 0.5 * np.linalg.norm(u)
+
+
+def test_greedy_nnls_finds_a_sparse_exact_rule():
+    rng = np.random.default_rng(0)
+    A = rng.uniform(0.0, 1.0, size=(200, 80))
+    truth = np.zeros(80)
+    truth[[3, 17, 41, 66]] = [0.5, 2.0, 1.0, 0.25]
+    cub = greedy_nnls(A, A @ truth, max_samples=20, tolerance=1e-10, candidates=80)
+    assert cub.error < 1e-8 and cub.n_samples <= 8
+
+
+def test_held_out_error_falls_as_samples_grow(small):
+    sim, training = small
+    dom = sim.model.subspace[0]
+    errs = [build_domain_cubature(dom, training.q[0], s, seed=0)[1]["held_out_error"] for s in (4, 16, 64)]
+    assert errs[0] > errs[1] > errs[2], errs
+    assert errs[2] < 0.05
+
+
+def test_simulation_with_cubature_tracks_exact_forces():
+    tips = []
+    for samples in (0, 80):
+        sim = Simulator(load_scene("cantilever", overrides={**SMALL, "model.cubature": {
+            "samples": samples, "training": {"n_poses": 30, "stride": 2, "hold": 6, "force_scale": 2.0}}}))
+        sim.set_wrench("tip", force=(0.0, 0.0, -20.0))
+        sim.step(40)
+        tip = sim.body.handles["tip"]
+        tips.append((sim.vertex_positions() - sim.rest_positions())[tip].mean(0))
+    assert np.linalg.norm(tips[1] - tips[0]) < 0.02 * np.linalg.norm(tips[0])
