@@ -69,3 +69,70 @@ def test_simulation_with_cubature_tracks_exact_forces():
         tip = sim.body.handles["tip"]
         tips.append((sim.vertex_positions() - sim.rest_positions())[tip].mean(0))
     assert np.linalg.norm(tips[1] - tips[0]) < 0.02 * np.linalg.norm(tips[0])
+
+
+def _interface_sim(interface, samples=40, isamples=20, domains=3, poses=30):
+    return Simulator(load_scene("cantilever", overrides={
+        "body.mesh.cell": 0.05, "model.domains.count": domains, "model.modes": 8, "gravity": [0, 0, 0], "pins": [],
+        "handles": {}, "timeline": [],
+        "model.cubature": {"samples": samples, "interface": interface, "interface_samples": isamples,
+                           "training": {"n_poses": poses, "stride": 2, "hold": 6, "force_scale": 2.0}}}))
+
+
+def _random_state(m, seed=0):
+    from mdss_ros.rotations import exp_so3
+    rng = np.random.default_rng(seed)
+    for k, dom in enumerate(m.subspace):
+        m.q[k] = 2e-3 * rng.normal(size=dom.r)
+        m.frames.R[k] = exp_so3(0.05 * rng.normal(size=3)) @ m.frames.R[k]
+        m.frames.c[k] += 1e-3 * rng.normal(size=3)
+
+
+@pytest.mark.parametrize("scheme", ["uniform", "nonuniform"])
+def test_unit_weights_reproduce_exact_coupling(scheme):
+    sim = _interface_sim("exact", samples=40)
+    m = sim.model
+    _random_state(m)
+    G0, K0, *_ = m._evaluate(m.q, m.frames, m.x_full)
+    m.c_weights = np.ones((len(m.c_elem), 4))
+    m.c_pairs = np.zeros((len(m.c_elem), 2), dtype=np.int64)
+    dom_of = m.sub_index_of_domain[m.vertex_domain[m.c_verts]]
+    m.c_pairs[:, 0], m.c_pairs[:, 1] = dom_of.min(1), dom_of.max(1)
+    m.unsymmetric = scheme == "nonuniform"
+    G1, K1, *_ = m._evaluate(m.q, m.frames, m.x_full)
+    np.testing.assert_allclose(G1, G0, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(K1, K0, rtol=1e-10, atol=1e-9)
+
+
+@pytest.mark.parametrize("isamples", [5, 10, 20])
+def test_nonuniform_held_out_error_no_worse_than_uniform(isamples):
+    """Interface error = mean over the four groups (F_i, F_j, forces, torques) of the
+    held-out relative error, on 80 training poses. Per group the non-uniform fit can be
+    slightly worse at very low counts (seen for F_j at 5-10 samples); the report lists them."""
+    uni = _interface_sim("uniform", isamples=isamples, poses=80).model.cubature_info["interface"]["interfaces"]
+    non = _interface_sim("nonuniform", isamples=isamples, poses=80).model.cubature_info["interface"]["interfaces"]
+    for u, n in zip(uni, non):
+        assert np.mean(list(n["held_out_error"].values())) <= np.mean(list(u["held_out_error"].values()))
+
+
+def test_nonuniform_coupling_forces_conserve_momentum():
+    sim = _interface_sim("nonuniform")
+    m = sim.model
+    assert m.unsymmetric and m.c_weights is not None
+    assert np.abs(m.c_weights[:, 0] - m.c_weights[:, 2]).max() > 1e-3     # really non-uniform
+    _random_state(m, seed=3)
+    G = m._evaluate(m.q, m.frames, m.x_full)[0]
+    # Domain elements exert no net force or torque on frames, so the frame rows of G are
+    # the coupling forces f_k and torques about c_k: their sums must vanish.
+    force = np.zeros(3)
+    torque = np.zeros(3)
+    scale = 0.0
+    for k, dom in enumerate(m.subspace):
+        o = m.sub_offsets[k] + dom.r
+        f_k, t_k = G[o:o + 3], G[o + 3:o + 6]
+        force += f_k
+        torque += t_k + np.cross(m.frames.c[k], f_k)
+        scale = max(scale, np.abs(f_k).max())
+    assert scale > 0
+    assert np.abs(force).max() < 1e-10 * scale
+    assert np.abs(torque).max() < 1e-10 * scale

@@ -125,3 +125,37 @@ def spring_forces(x, springs, rest_length, k_spring, want_hessian=True):
     K[:, :3, 3:] = -Kdd
     K[:, 3:, :3] = -Kdd
     return energy, f, K
+
+
+@njit(cache=True)
+def project_coupling_left(elem, f_e, K_e, JL, J, cols, G, A_ss):
+    """Like project_coupling for subspace-only systems, with a per-element left factor:
+    G += JL_e^T f_e, A += JL_e^T K_e J_e. JL (n_c, k, 3, s_max) carries non-uniform
+    cubature weights (different per row group), which makes A unsymmetric."""
+    n_c, k = elem.shape
+    s_max = J.shape[2]
+    T = np.empty((3, s_max))
+    for e in range(n_c):
+        for a in range(k):
+            la = elem[e, a]
+            for s in range(s_max):
+                c = cols[la, s]
+                if c >= 0:
+                    G[c] += JL[e, a, 0, s] * f_e[e, a, 0] + JL[e, a, 1, s] * f_e[e, a, 1] + JL[e, a, 2, s] * f_e[e, a, 2]
+            for b in range(k):
+                lb = elem[e, b]
+                for i in range(3):
+                    for t in range(s_max):
+                        acc = 0.0
+                        if cols[lb, t] >= 0:
+                            for j in range(3):
+                                acc += K_e[e, 3 * a + i, 3 * b + j] * J[lb, j, t]
+                        T[i, t] = acc
+                for s in range(s_max):
+                    row = cols[la, s]
+                    if row < 0:
+                        continue
+                    for t in range(s_max):
+                        col = cols[lb, t]
+                        if col >= 0:
+                            A_ss[row, col] += JL[e, a, 0, s] * T[0, t] + JL[e, a, 1, s] * T[1, t] + JL[e, a, 2, s] * T[2, t]

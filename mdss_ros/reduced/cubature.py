@@ -141,3 +141,142 @@ def build_domain_cubature(dom, Q, samples, tolerance=0.0, seed=0, progress=None)
     forces = SampledDomainForces.build(dom.U3, fm.tets, fm.geom.grads, fm.geom.volume, fm.material,
                                        cub.elements, cub.weights)
     return forces, info
+
+
+# ---------------------------------------------------------------------- interfaces
+#
+# A coupling element e of the interface (i, j) contributes, at a pose, to
+#   F_i = sum_{l in e, l in i} U_l^T R_i^T f_l      (reduced force on i, r_i)
+#   F_j                                              (r_j)
+#   f_i = sum_{l in i} f_l,  f_j = -f_i              (forces on the frames)
+#   t_i = sum_{l in i} (x_l - O) x f_l,  t_j         (torques about O = (c_i + c_j) / 2)
+# Uniform cubature fits one weight per sample to all groups together. Non-uniform keeps
+# the samples and fits four weight sets: F_i, F_j, (f_i, f_j) shared and (t_i, t_j)
+# shared. Shared weights keep sum f = 0 and sum t(O) = 0, and the torque about each frame
+# centre is rebuilt as t_i(c_i) = w_t t_i(O) - (c_i - O) x w_f f_i, so linear and angular
+# momentum of the coupling forces are conserved exactly.
+
+INTERFACE_GROUPS = ("F_i", "F_j", "force", "torque")
+
+
+def interface_features(model, elements, pair, training, poses):
+    """Per-element contributions of one interface at the given poses.
+
+    elements (n_g,) global tet ids touching exactly the subspace domains pair = (i, j)
+    (subspace indices). Returns a dict group -> array (T, rows, n_g).
+    """
+    from ..fem.elements import element_forces
+    i, j = pair
+    tets = model.body.tets[elements]
+    geom = model.geom
+    from .reduced_model import _subset_geometry
+    sub = _subset_geometry(geom, elements)
+    doms = (model.subspace[i], model.subspace[j])
+    slot_dom = model.vertex_domain[tets]                              # (n_g, 4) global domain ids
+    out = {g: [] for g in INTERFACE_GROUPS}
+    for t in poses:
+        x = training.reconstructed(model, t)
+        _, f, _ = element_forces(x, tets, sub, model.body.material, want_hessian=False)
+        f = f.copy()
+        c = training.c[t]
+        R = training.R[t]
+        O = 0.5 * (c[i] + c[j])
+        Fs, fs, ts = [], [], []
+        for side, k in enumerate((i, j)):
+            dom = doms[side]
+            mask = (slot_dom == dom.index)                             # (n_g, 4)
+            F = np.zeros((len(elements), dom.r))
+            fsum = np.zeros((len(elements), 3))
+            tsum = np.zeros((len(elements), 3))
+            for a in range(4):
+                rows = np.flatnonzero(mask[:, a])
+                if rows.size == 0:
+                    continue
+                loc = model.vertex_local[tets[rows, a]]
+                fa = f[rows, a]
+                F[rows] += np.einsum("lib,li->lb", dom.U3[loc], fa @ R[k])
+                fsum[rows] += fa
+                tsum[rows] += np.cross(x[tets[rows, a]] - O, fa)
+            Fs.append(F)
+            fs.append(fsum)
+            ts.append(tsum)
+        out["F_i"].append(Fs[0].T)
+        out["F_j"].append(Fs[1].T)
+        out["force"].append(np.concatenate([fs[0], fs[1]], axis=1).T)
+        out["torque"].append(np.concatenate([ts[0], ts[1]], axis=1).T)
+    return {g: np.array(v) for g, v in out.items()}
+
+
+def _stack(features, groups, poses_idx):
+    """Normalised (rows, n_g) column matrix and target of the given groups and poses."""
+    As, bs = [], []
+    for g in groups:
+        F = features[g][poses_idx]                      # (T, rows, n_g)
+        b = F.sum(axis=2)                               # (T, rows)
+        norm = np.linalg.norm(b, axis=1)
+        scale = 1.0 / np.maximum(norm, 1e-12 * max(norm.max(), 1e-300))
+        As.append((F * scale[:, None, None]).reshape(-1, F.shape[2]))
+        bs.append((b * scale[:, None]).reshape(-1))
+    return np.concatenate(As), np.concatenate(bs)
+
+
+def _regularised_nnls(A, b, w_uniform, lam):
+    """argmin |A w - b|^2 + lam^2 |w - w_uniform|^2 over w >= 0 (lam = inf: uniform)."""
+    if not np.isfinite(lam):
+        return w_uniform.copy()
+    n = A.shape[1]
+    A_aug = np.vstack([A, lam * np.eye(n)])
+    b_aug = np.concatenate([b, lam * w_uniform])
+    return nnls(A_aug, b_aug, maxiter=50 * n + 100)[0]
+
+
+def _nonuniform_weights(feats, group, train, elements, w_uniform, seed, folds=4):
+    """One group's weights on the uniform samples: NNLS pulled toward the uniform weights
+    with a strength chosen by k-fold cross-validation on the training poses (the grid
+    includes 'uniform'), so a group refits only where that generalises to unseen poses."""
+    A, b = _stack(feats, (group,), train)
+    rows = A.shape[0] // len(train)
+    A = A[:, elements]
+    scale = np.linalg.norm(A) / np.sqrt(max(A.shape[1], 1))
+    grid = [0.0, 0.03, 0.1, 0.3, 1.0, np.inf]
+    order = np.random.default_rng(seed + 1).permutation(len(train))
+    fold_of = np.empty(len(train), dtype=np.int64)
+    fold_of[order] = np.arange(len(train)) % folds
+    best, best_err = np.inf, np.inf
+    if len(train) >= 2 * folds:
+        for lam in grid:
+            errs = []
+            for f in range(folds):
+                tr = np.repeat(fold_of != f, rows)
+                va = ~tr
+                w = _regularised_nnls(A[tr], b[tr], w_uniform, lam * scale)
+                errs.append(relative_error(A[va], b[va], rows, np.arange(A.shape[1]), w))
+            if np.mean(errs) < best_err - 1e-12:
+                best, best_err = lam, float(np.mean(errs))
+    return _regularised_nnls(A, b, w_uniform, best * scale)
+
+
+def build_interface_cubature(model, elements, pair, training, samples, scheme="uniform", seed=0):
+    """Samples and weights (s, 4) for one interface; columns of the weights follow
+    INTERFACE_GROUPS. Returns (sample tet ids, weights, info)."""
+    train, held = split_poses(training.n_poses, seed=seed)
+    feats = interface_features(model, elements, pair, training, np.arange(training.n_poses))
+    A, b = _stack(feats, INTERFACE_GROUPS, train)
+    cub = greedy_nnls(A, b, samples, seed=seed)
+    W = np.repeat(cub.weights[:, None], 4, axis=1)
+    if scheme == "nonuniform":
+        for g, group in enumerate(INTERFACE_GROUPS):
+            W[:, g] = _nonuniform_weights(feats, group, train, cub.elements, cub.weights, seed)
+    elif scheme != "uniform":
+        raise ValueError(f"interface cubature scheme must be uniform or nonuniform, got {scheme!r}")
+    info = {"pair": [int(pair[0]), int(pair[1])], "elements": len(elements), "samples": int(cub.n_samples)}
+    for name, idx in (("train", train), ("held_out", held)):
+        if len(idx) == 0:
+            continue
+        errs = {}
+        for g, group in enumerate(INTERFACE_GROUPS):
+            Ag, bg = _stack(feats, (group,), idx)
+            rows = Ag.shape[0] // len(idx)
+            errs[group] = relative_error(Ag, bg, rows, cub.elements, W[:, g])
+        info[f"{name}_error"] = errs
+    return elements[cub.elements], W, info

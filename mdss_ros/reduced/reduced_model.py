@@ -31,7 +31,7 @@ from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
-from .coupling import project_coupling, project_forces, skew_batch, spring_forces
+from .coupling import project_coupling, project_coupling_left, project_forces, skew_batch, spring_forces
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, _orthonormalise, fictitious_forces
 
@@ -102,6 +102,7 @@ class ReducedModel:
                 f"r = {dom.r}, basis region +{dom.basis_info['layers']} layers, {'free (frame + modes)' if dom.movable else 'pinned (modes only)'}, "
                 f"basis {dom.basis_info['seconds']:.2f} s")
         self.movable = np.array([dom.movable for dom in self.subspace], dtype=bool)
+        self.sub_index_of_domain = np.array([k if kind == "sub" else -1 for kind, k in self.domain_kind], dtype=np.int64)
 
         # Generalised DOF layout -------------------------------------------------
         sizes = np.array([dom.n_dofs for dom in self.subspace], dtype=np.int64)
@@ -136,17 +137,17 @@ class ReducedModel:
         ccfg = dict(cfg.get("coupling") or {})
         self.coupling_kind = ccfg.get("kind", "element")
         if self.coupling_kind == "element":
-            self.c_verts = tets[coupling]                       # (n_c, 4) global
-            self.c_geom = _subset_geometry(self.geom, coupling)
+            pass                                                # set by _set_coupling_elements
         elif self.coupling_kind == "spring":
             self.c_verts = self._coupling_springs(tets[coupling])
             self.spring_k = float(ccfg.get("stiffness", 1e4))
             self.spring_rest = np.linalg.norm(X[self.c_verts[:, 1]] - X[self.c_verts[:, 0]], axis=1)
         else:
             raise SceneError(f"model.coupling.kind: {self.coupling_kind!r} (element, spring)")
-        self.iface, inv = np.unique(self.c_verts, return_inverse=True)
-        self.c_elem = inv.reshape(self.c_verts.shape).astype(np.int64)
-        self._build_interface_maps()
+        self.c_weights = None           # (n_c, 4) cubature weights per INTERFACE_GROUPS, None = exact
+        self.c_pairs = None             # (n_c, 2) subspace domains of a sampled element, -1 = exact
+        self.unsymmetric = False
+        self._set_coupling_elements(coupling)
 
         # Solver -------------------------------------------------------------------
         self.order = domain_elimination_order(len(self.subspace), self._subspace_edges())
@@ -165,9 +166,15 @@ class ReducedModel:
         if unknown:
             raise SceneError(f"model.cubature: unknown key(s) {sorted(unknown)} (allowed: {sorted(allowed)})")
         samples = ccfg.get("samples", 0) or 0
-        if ccfg.get("interface", "exact") != "exact":
-            raise SceneError("model.cubature.interface: only 'exact' is available in this version")
+        interface = ccfg.get("interface", "exact")
+        if interface not in ("exact", "uniform", "nonuniform"):
+            raise SceneError(f"model.cubature.interface: {interface!r} (exact, uniform, nonuniform)")
+        if interface != "exact" and (self.F or self.coupling_kind != "element"):
+            raise SceneError("model.cubature.interface: interface cubature needs element coupling and no "
+                             "full-space domains (use interface: exact)")
         if samples <= 0 or not self.subspace:
+            if interface != "exact":
+                raise SceneError("model.cubature.interface: set model.cubature.samples > 0 as well")
             return {"samples": 0}
         tcfg = dict(ccfg.get("training") or {})
         t0 = time.perf_counter()
@@ -181,9 +188,40 @@ class ReducedModel:
             info["domains"].append(d_info)
             say(f"cubature {dom.name}: {d_info['samples']} of {d_info['elements']} elements, "
                 f"training error {d_info['train_error']:.2e}, held-out {d_info.get('held_out_error', float('nan')):.2e}")
+        if interface != "exact":
+            info["interface"] = self._build_interface_cubature(training, interface,
+                                                               int(ccfg.get("interface_samples", samples)),
+                                                               int(ccfg.get("seed", 0)), say)
         info["seconds"] = time.perf_counter() - t0
         self.training = training
         return info
+
+    def _build_interface_cubature(self, training, scheme, samples, seed, say):
+        """Replace each two-domain interface's coupling elements by weighted samples;
+        elements touching three or more domains stay exact."""
+        from .cubature import build_interface_cubature
+        tets_dom = self.vertex_domain[self.body.tets[self.c_tets]]
+        lo, hi = tets_dom.min(1), tets_dom.max(1)
+        two = (np.diff(np.sort(tets_dom, axis=1), axis=1) != 0).sum(1) == 1
+        keep_exact = self.c_tets[~two]
+        new_tets, new_w, new_pairs, infos = [keep_exact], [np.ones((len(keep_exact), 4))], \
+            [np.full((len(keep_exact), 2), -1)], []
+        for i, j in np.unique(np.stack([lo[two], hi[two]], 1), axis=0):
+            elems = self.c_tets[two & (lo == i) & (hi == j)]
+            pair = (int(self.sub_index_of_domain[i]), int(self.sub_index_of_domain[j]))
+            ids, W, inf = build_interface_cubature(self, elems, pair, training, samples, scheme, seed)
+            new_tets.append(ids)
+            new_w.append(W)
+            new_pairs.append(np.tile(pair, (len(ids), 1)))
+            infos.append(inf)
+            say(f"interface {self.partition.names[i]}-{self.partition.names[j]}: {len(ids)} of {len(elems)} "
+                f"elements ({scheme}), held-out errors "
+                f"{ {g: round(v, 4) for g, v in inf.get('held_out_error', {}).items()} }")
+        self._set_coupling_elements(np.concatenate(new_tets))
+        self.c_weights = np.concatenate(new_w)
+        self.c_pairs = np.concatenate(new_pairs).astype(np.int64)
+        self.unsymmetric = scheme == "nonuniform"
+        return {"scheme": scheme, "interfaces": infos, "exact_elements": int(len(keep_exact))}
 
     # ------------------------------------------------------------------ setup
     @staticmethod
@@ -229,6 +267,16 @@ class ReducedModel:
             if ki[0] == "sub" and kj[0] == "sub":
                 edges.append((ki[1], kj[1]))
         return np.array(edges, dtype=np.int64).reshape(-1, 2)
+
+    def _set_coupling_elements(self, tet_ids):
+        """Use these coupling tets (global ids) and rebuild the interface-vertex maps."""
+        if self.coupling_kind == "element":
+            self.c_tets = np.asarray(tet_ids, dtype=np.int64)
+            self.c_verts = self.body.tets[self.c_tets]
+            self.c_geom = _subset_geometry(self.geom, self.c_tets)
+        self.iface, inv = np.unique(self.c_verts, return_inverse=True)
+        self.c_elem = inv.reshape(self.c_verts.shape).astype(np.int64)
+        self._build_interface_maps()
 
     def _build_interface_maps(self):
         """Static part of J for the interface vertices: generalised columns, full flags."""
@@ -534,8 +582,21 @@ class ReducedModel:
                                            want_hessian, project)
         else:
             e_c, f_c, K_c = spring_forces(x_I, self.c_elem, self.spring_rest, self.spring_k, want_hessian)
+        JL = None
+        if self.c_weights is not None:
+            w = self.c_weights
+            e_c = e_c * w[:, 2]
+            if self.unsymmetric:
+                JL = self._weighted_left_J(J, x_I, frames)
+            else:
+                f_c = f_c * w[:, 0, None, None]
+                if want_hessian:
+                    K_c = K_c * w[:, 0, None, None]
         energy += float(e_c.sum())
-        if want_hessian:
+        if JL is not None:
+            project_coupling_left(self.c_elem, f_c, K_c if want_hessian else np.zeros((len(f_c), 12, 12)),
+                                  JL, J, self.J_cols, G, K_ss if want_hessian else np.zeros((self.S, self.S)))
+        elif want_hessian:
             project_coupling(self.c_elem, f_c, K_c, J, self.J_cols, self.J_full, self.J_icol, G, K_ss, K_sI)
             if self.F:
                 K_f[self.n_full_elems:] = self._coupling_full_block(K_c)
@@ -545,6 +606,31 @@ class ReducedModel:
         t2 = time.perf_counter()
         self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
         return G, K_ss, K_sI, K_ff, energy, J, x_I
+
+    def _weighted_left_J(self, J, x_I, frames):
+        """Left factor of the non-uniform interface cubature (see cubature.py): per sample
+        and vertex, J with the reduced columns weighted by w_Fi or w_Fj, the force columns
+        by w_f, and the torque columns rebuilt about O = (c_i + c_j) / 2 as
+        -[w_t (x_l - O) - w_f (c_k - O)]x, which conserves linear and angular momentum."""
+        JL = J[self.c_elem].copy()                                   # (n_c, 4, 3, s_max)
+        w, pairs = self.c_weights, self.c_pairs
+        sampled = pairs[:, 0] >= 0
+        O = np.zeros((len(pairs), 3))
+        O[sampled] = 0.5 * (frames.c[pairs[sampled, 0]] + frames.c[pairs[sampled, 1]])
+        slot_sub = self.sub_index_of_domain[self.vertex_domain[self.iface[self.c_elem]]]    # (n_c, 4)
+        for k, dom in enumerate(self.subspace):
+            e_idx, a_idx = np.nonzero((slot_sub == k) & sampled[:, None])
+            if e_idx.size == 0:
+                continue
+            wq = np.where(pairs[e_idx, 0] == k, w[e_idx, 0], w[e_idx, 1])
+            JL[e_idx, a_idx, :, :dom.r] *= wq[:, None, None]
+            if dom.movable:
+                r = dom.r
+                JL[e_idx, a_idx, :, r:r + 3] *= w[e_idx, 2, None, None]
+                x = x_I[self.c_elem[e_idx, a_idx]]
+                lever = w[e_idx, 3, None] * (x - O[e_idx]) - w[e_idx, 2, None] * (frames.c[k] - O[e_idx])
+                JL[e_idx, a_idx, :, r + 3:r + 6] = -skew_batch(lever)
+        return JL
 
     def _coupling_full_block(self, K_c):
         """Coupling element matrices with only full-full vertex pairs kept (others via J)."""
@@ -626,7 +712,11 @@ class ReducedModel:
 
     def _solve(self, A_ss, A_sI, A_ff, rhs):
         t0 = time.perf_counter()
-        if self.F == 0:
+        if self.F == 0 and self.unsymmetric:
+            lu = sla.lu_factor(A_ss, check_finite=False)
+            t1 = time.perf_counter()
+            x = sla.lu_solve(lu, rhs, check_finite=False)
+        elif self.F == 0:
             self.block_solver.factor(A_ss)
             t1 = time.perf_counter()
             x = self.block_solver.solve(rhs)
@@ -702,7 +792,7 @@ class ReducedModel:
                 dQ = self._solve(*A, -r)
                 iterations += 1
                 step_len = 1.0
-                if self.newton_iterations > 1 and self.line_search:
+                if self.newton_iterations > 1 and self.line_search and not self.unsymmetric:
                     phi0 = self._potential(Q, p0, Mgen, D, Fn, energy)
                     slope = float(r @ dQ)
                     while step_len > 1e-4:
