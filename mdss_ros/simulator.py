@@ -14,7 +14,7 @@ from .loads import closest_surface_point, wrench_to_vertex_forces
 from .scene import Scene, load_scene
 
 
-def build_model(scene, body, progress=None):
+def build_model(scene, body, progress=None, cache=None):
     """The dynamics model of a scene (`model.kind`); progress(msg) hears long build steps."""
     model = scene["model"]
     kind = model["kind"]
@@ -25,7 +25,7 @@ def build_model(scene, body, progress=None):
     if kind == "reduced":
         from .reduced.reduced_model import ReducedModel
         return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
-                            progress=progress)
+                            progress=progress, cache=cache)
     raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
                      f"(available: full, reduced)")
 
@@ -34,15 +34,17 @@ class Simulator:
     """Steps one deformable body of a scene.
 
     scene: a Scene, a path or scene name, or a dict (validated by load_scene).
+    progress: callable(str) that hears long build steps; cache: a PrecomputeCache
+    (default: $MDSS_CACHE_DIR or ~/.cache/mdss_ros; PrecomputeCache(enabled=False) turns it off).
     """
 
-    def __init__(self, scene, overrides=None, progress=None):
+    def __init__(self, scene, overrides=None, progress=None, cache=None):
         if not isinstance(scene, Scene) or overrides:
             scene = load_scene(scene, overrides)
         self.scene = scene
         t0 = time.perf_counter()
         self.body = build_body(scene)
-        self.model = build_model(scene, self.body, progress)
+        self.model = build_model(scene, self.body, progress, cache)
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
         self._collider_names = set(scene["colliders"])

@@ -35,3 +35,10 @@ def _next_domain_id():
     # 0..101 are valid everywhere; spread by pid so two pytest runs on one machine do not meet.
     _domain_counter[0] += 1
     return 1 + (os.getpid() * 7 + _domain_counter[0]) % 100
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _isolated_precompute_cache(tmp_path_factory):
+    """Tests write precompute caches to their own folder, never to the user's."""
+    os.environ["MDSS_CACHE_DIR"] = str(tmp_path_factory.mktemp("mdss_cache"))
+    yield

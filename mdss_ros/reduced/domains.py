@@ -130,8 +130,9 @@ def layers_for_extension(X, tets, verts, extension):
     return max(1, int(np.ceil(extension * diameter / max(mean_edge, 1e-300))))
 
 
-def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, basis_opts, pinned_mask):
-    """Basis and local force model of one subspace domain."""
+def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, basis_opts, pinned_mask,
+                          U=None, basis_info=None):
+    """Basis and local force model of one subspace domain (U, basis_info: from the cache)."""
     from .modal_basis import complete_basis, modal_basis
     t0 = time.perf_counter()
     X = body.vertices
@@ -145,6 +146,14 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
     m = vertex_mass[verts]
     cbar = (m[:, None] * X[verts]).sum(0) / m.sum()
     fixed_local = np.flatnonzero(pinned_mask[verts])
+    local = np.full(len(X), -1, dtype=np.int64)
+    local[verts] = np.arange(len(verts))
+    tets_local = local[body.tets[elements]]
+    forces = FEMForceModel(X[verts] - cbar, tets_local, body.material) if len(elements) else _NoElements(len(verts))
+    if U is not None:
+        return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
+                              mass=m, U=U, movable=fixed_local.size == 0, forces=forces,
+                              basis_info=dict(basis_info or {}, seconds=time.perf_counter() - t0, cached=True))
     sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X), layers)
     sub_local = np.full(len(X), -1, dtype=np.int64)
     sub_local[sub_v] = np.arange(len(sub_v))
@@ -154,15 +163,12 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
     else:
         basis = modal_basis(X[sub_v], sub_t, body.material, vertex_mass[sub_v], r,
                             fixed=sub_local[verts[fixed_local]], keep=keep, **basis_opts)
-    local = np.full(len(X), -1, dtype=np.int64)
-    local[verts] = np.arange(len(verts))
-    tets_local = local[body.tets[elements]]
-    forces = FEMForceModel(X[verts] - cbar, tets_local, body.material) if len(elements) else _NoElements(len(verts))
     return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
                           mass=m, U=basis.U, movable=fixed_local.size == 0, forces=forces,
-                          basis_info={"n_linear": basis.n_linear, "n_derivatives": basis.n_derivatives,
-                                      "layers": layers, "region_vertices": len(sub_v),
-                                      "eigenvalues": basis.eigenvalues, "seconds": time.perf_counter() - t0})
+                          basis_info={"n_linear": int(basis.n_linear), "n_derivatives": int(basis.n_derivatives),
+                                      "layers": layers, "region_vertices": int(len(sub_v)),
+                                      "eigenvalues": [float(v) for v in basis.eigenvalues],
+                                      "seconds": time.perf_counter() - t0, "cached": False})
 
 
 class _NoElements:

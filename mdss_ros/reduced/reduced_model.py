@@ -29,11 +29,23 @@ from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
 from ..fem.elements import TetGeometry, element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
+from ..precompute import PrecomputeCache, cache_key, code_hash
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
 from .coupling import project_coupling, project_coupling_left, project_forces, skew_batch, spring_forces
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, _orthonormalise, fictitious_forces
+
+
+def _jsonable(x):
+    """Numbers and arrays of an info dict as plain JSON types."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    return x
 
 
 def _subset_geometry(geom, ids):
@@ -48,7 +60,7 @@ class ReducedModel:
 
     kind = "reduced"
 
-    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None):
+    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None):
         from .partition import build_partition, domain_elimination_order
         t_start = time.perf_counter()
         say = progress or (lambda msg: None)
@@ -66,8 +78,18 @@ class ReducedModel:
         self.geom = tet_geometry(X, tets)
         self.vertex_mass = lumped_mass(tets, self.geom.volume, body.material.density, n)
 
-        # Partition --------------------------------------------------------------
-        labels, names = self._labels(cfg, body)
+        # Partition and bases, from the cache when their inputs are unchanged ----------
+        self.cache = cache if cache is not None else PrecomputeCache()
+        mat = body.material
+        self.bases_key = cache_key("bases", code_hash(), X, tets, mat.kind_id, mat.params, mat.density,
+                                   body.pinned, cfg.get("domains"), cfg.get("full_space_domains"),
+                                   cfg["modes"], cfg.get("basis") or {})
+        hit = self.cache.load("bases", self.bases_key)
+        if hit is not None:
+            labels, names = hit[0]["labels"], list(hit[1]["names"])
+            say(f"cache: bases loaded from {self.cache.path('bases', self.bases_key)}")
+        else:
+            labels, names = self._labels(cfg, body)
         self.partition = build_partition(tets, labels, names=names)
         part = self.partition
         d = part.n_domains
@@ -94,14 +116,22 @@ class ReducedModel:
             r_i = min(r, 3 * len(verts) - (6 if not pinned_mask[verts].any() else 3 * int(pinned_mask[verts].sum())))
             if r_i < 1:
                 raise SceneError(f"domain {names[i]} has too few free DOFs for a subspace ({len(verts)} vertices)")
+            cached_U = hit[0].get(f"U_{i}") if hit is not None else None
             dom = build_subspace_domain(i, names[i], body, self.vertex_mass, verts, part.domain_elements[i],
-                                        r_i, basis_opts, pinned_mask)
+                                        r_i, basis_opts, pinned_mask, U=cached_U,
+                                        basis_info=hit[1]["basis"].get(str(i)) if hit is not None else None)
             self.domain_kind.append(("sub", len(self.subspace)))
             self.subspace.append(dom)
             say(f"domain {names[i]}: {len(verts)} vertices, {len(part.domain_elements[i])} elements, "
                 f"r = {dom.r}, basis region +{dom.basis_info['layers']} layers, {'free (frame + modes)' if dom.movable else 'pinned (modes only)'}, "
                 f"basis {dom.basis_info['seconds']:.2f} s")
         self.movable = np.array([dom.movable for dom in self.subspace], dtype=bool)
+        if hit is None:
+            self.cache.save("bases", self.bases_key,
+                            dict({"labels": np.asarray(labels)}, **{f"U_{dom.index}": dom.U for dom in self.subspace}),
+                            {"names": list(names),
+                             "basis": {str(dom.index): {k: v for k, v in dom.basis_info.items() if k != "seconds"}
+                                       for dom in self.subspace}})
         self.sub_index_of_domain = np.array([k if kind == "sub" else -1 for kind, k in self.domain_kind], dtype=np.int64)
 
         # Generalised DOF layout -------------------------------------------------
@@ -176,6 +206,12 @@ class ReducedModel:
             if interface != "exact":
                 raise SceneError("model.cubature.interface: set model.cubature.samples > 0 as well")
             return {"samples": 0}
+        key = cache_key("cubature", self.bases_key, code_hash(), ccfg, self.dt, self.alpha, self.beta,
+                        self.cfg.get("coupling") or {})
+        hit = self.cache.load("cubature", key)
+        if hit is not None:
+            say(f"cache: cubature loaded from {self.cache.path('cubature', key)}")
+            return self._restore_cubature(*hit)
         tcfg = dict(ccfg.get("training") or {})
         t0 = time.perf_counter()
         training = generate_training(self, progress=say, seed=int(ccfg.get("seed", 0)), **tcfg)
@@ -194,7 +230,29 @@ class ReducedModel:
                                                                int(ccfg.get("seed", 0)), say)
         info["seconds"] = time.perf_counter() - t0
         self.training = training
+        arrays = {}
+        for k, dom in enumerate(self.subspace):
+            arrays[f"elements_{k}"] = dom.sampled.elements
+            arrays[f"weights_{k}"] = dom.sampled.weights
+            arrays[f"training_q_{k}"] = training.q[k]
+        arrays["training_c"], arrays["training_R"] = training.c, training.R
+        if self.c_weights is not None:
+            arrays["c_tets"], arrays["c_weights"], arrays["c_pairs"] = self.c_tets, self.c_weights, self.c_pairs
+        self.cache.save("cubature", key, arrays, _jsonable(dict(info, unsymmetric=self.unsymmetric)))
         return info
+
+    def _restore_cubature(self, arrays, meta):
+        from .sampled_forces import SampledDomainForces
+        for k, dom in enumerate(self.subspace):
+            fm = dom.forces
+            dom.sampled = SampledDomainForces.build(dom.U3, fm.tets, fm.geom.grads, fm.geom.volume, fm.material,
+                                                    arrays[f"elements_{k}"], arrays[f"weights_{k}"])
+        if "c_tets" in arrays:
+            self._set_coupling_elements(arrays["c_tets"])
+            self.c_weights = arrays["c_weights"]
+            self.c_pairs = arrays["c_pairs"].astype(np.int64)
+            self.unsymmetric = bool(meta.get("unsymmetric", False))
+        return dict(meta, cached=True)
 
     def _build_interface_cubature(self, training, scheme, samples, seed, say):
         """Replace each two-domain interface's coupling elements by weighted samples;

@@ -1,0 +1,135 @@
+"""Precompute cache on disk.
+
+The reduced model's slow parts are built in stages, each stored under a key that hashes
+everything the stage depends on (and the key of the stage before it):
+
+    bases     mesh, material, pins, partition settings, modes, basis options, code
+    cubature  bases key, training and cubature settings, dt, damping, coupling, code
+
+so changing the cubature settings reuses the bases, and changing the mesh rebuilds all.
+"code" is a hash of the source files of the precompute, so editing them invalidates
+old entries. A file is an .npz holding the arrays plus a JSON header (magic, stage, key,
+SHA-256 of the arrays); a file that fails to load, has another key or a wrong checksum is
+reported and rebuilt, never used.
+
+The folder is $MDSS_CACHE_DIR, else ~/.cache/mdss_ros.
+"""
+import hashlib
+import io
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+MAGIC = "mdss_ros precompute v1"
+_CODE_FILES = ["reduced/partition.py", "reduced/modal_basis.py", "reduced/domains.py", "reduced/training.py",
+               "reduced/cubature.py", "reduced/sampled_forces.py", "fem/materials.py", "fem/material_kernels.py",
+               "fem/elements.py", "precompute.py"]
+
+
+def code_hash():
+    """SHA-256 (16 hex) of the precompute's source files."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for rel in _CODE_FILES:
+        p = root / rel
+        h.update(rel.encode())
+        h.update(p.read_bytes() if p.exists() else b"missing")
+    return h.hexdigest()[:16]
+
+
+def cache_key(*parts):
+    """Stable hash of nested parts: numpy arrays (dtype, shape, bytes), dicts, lists, scalars."""
+    h = hashlib.sha256()
+
+    def feed(x):
+        if isinstance(x, np.ndarray):
+            a = np.ascontiguousarray(x)
+            h.update(f"nd{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        elif isinstance(x, dict):
+            h.update(b"{")
+            for k in sorted(x, key=str):
+                feed(str(k))
+                feed(x[k])
+            h.update(b"}")
+        elif isinstance(x, (list, tuple)):
+            h.update(b"[")
+            for v in x:
+                feed(v)
+            h.update(b"]")
+        else:
+            h.update(repr(x).encode())
+            h.update(b";")
+
+    for p in parts:
+        feed(p)
+    return h.hexdigest()[:24]
+
+
+def _payload_digest(arrays):
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+class PrecomputeCache:
+    """Folder of stage files. `events` records what happened (hit, miss, rebuilt-corrupt)."""
+
+    def __init__(self, folder=None, enabled=True):
+        self.folder = Path(folder or os.environ.get("MDSS_CACHE_DIR") or Path.home() / ".cache" / "mdss_ros")
+        self.enabled = enabled
+        self.events = []
+
+    def path(self, stage, key):
+        return self.folder / f"{stage}-{key}.npz"
+
+    def load(self, stage, key):
+        """(arrays dict, meta dict) or None. Bad files are reported in events and ignored."""
+        if not self.enabled:
+            return None
+        p = self.path(stage, key)
+        if not p.exists():
+            self.events.append((stage, "miss", str(p)))
+            return None
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                header = json.loads(bytes(z["__header__"]).decode())
+                arrays = {k: z[k] for k in z.files if k != "__header__"}
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as err:
+            self.events.append((stage, "corrupt", f"{p}: {type(err).__name__}: {err}"))
+            return None
+        problem = None
+        if header.get("magic") != MAGIC or header.get("stage") != stage:
+            problem = "not an mdss_ros precompute file of this stage"
+        elif header.get("key") != key:
+            problem = f"written for other inputs (key {header.get('key')})"
+        elif header.get("sha256") != _payload_digest(arrays):
+            problem = "checksum mismatch"
+        if problem:
+            self.events.append((stage, "corrupt", f"{p}: {problem}"))
+            return None
+        self.events.append((stage, "hit", str(p)))
+        return arrays, header.get("meta", {})
+
+    def save(self, stage, key, arrays, meta=None):
+        """Write atomically (temp file then rename) so a crash never leaves half a file."""
+        if not self.enabled:
+            return None
+        self.folder.mkdir(parents=True, exist_ok=True)
+        header = {"magic": MAGIC, "stage": stage, "key": key, "sha256": _payload_digest(arrays),
+                  "meta": meta or {}}
+        buf = io.BytesIO()
+        np.savez(buf, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
+        p = self.path(stage, key)
+        tmp = p.with_suffix(".tmp")
+        tmp.write_bytes(buf.getvalue())
+        os.replace(tmp, p)
+        self.events.append((stage, "saved", str(p)))
+        return p

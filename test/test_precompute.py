@@ -1,0 +1,63 @@
+"""Precompute cache: reuse, staged invalidation, corrupt and foreign files."""
+import numpy as np
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.precompute import PrecomputeCache
+
+OV = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 6,
+      "model.cubature": {"samples": 30, "training": {"n_poses": 20, "stride": 2, "hold": 6}}}
+
+
+def _run(cache, ov=OV):
+    sim = Simulator(load_scene("cantilever", overrides=ov), cache=cache)
+    sim.set_wrench("tip", force=(0.0, 0.0, -10.0))
+    sim.step(10)
+    return sim
+
+
+def _kinds(cache):
+    return [(stage, kind) for stage, kind, _ in cache.events]
+
+
+def test_second_build_loads_everything_and_steps_identically(tmp_path):
+    first = PrecomputeCache(tmp_path)
+    a = _run(first)
+    assert ("bases", "saved") in _kinds(first) and ("cubature", "saved") in _kinds(first)
+    second = PrecomputeCache(tmp_path)
+    b = _run(second)
+    assert _kinds(second) == [("bases", "hit"), ("cubature", "hit")]
+    for da, db in zip(a.model.subspace, b.model.subspace):
+        np.testing.assert_array_equal(da.U, db.U)
+        np.testing.assert_array_equal(da.sampled.elements, db.sampled.elements)
+    np.testing.assert_array_equal(a.vertex_positions(), b.vertex_positions())
+    assert b.build_seconds < a.build_seconds
+
+
+def test_changing_cubature_settings_reuses_the_bases(tmp_path):
+    _run(PrecomputeCache(tmp_path))
+    cache = PrecomputeCache(tmp_path)
+    _run(cache, dict(OV, **{"model.cubature": {"samples": 12, "training": {"n_poses": 20, "stride": 2, "hold": 6}}}))
+    assert ("bases", "hit") in _kinds(cache) and ("cubature", "miss") in _kinds(cache)
+    cache = PrecomputeCache(tmp_path)
+    _run(cache, dict(OV, **{"model.modes": 5}))
+    assert ("bases", "miss") in _kinds(cache)
+
+
+def test_corrupt_and_foreign_files_are_reported_and_rebuilt(tmp_path):
+    ref = _run(PrecomputeCache(tmp_path))
+    files = sorted(tmp_path.glob("bases-*.npz"))
+    assert len(files) == 1
+    files[0].write_bytes(files[0].read_bytes()[:200])          # truncated
+    cache = PrecomputeCache(tmp_path)
+    again = _run(cache)
+    assert ("bases", "corrupt") in _kinds(cache) and ("bases", "saved") in _kinds(cache)
+    np.testing.assert_array_equal(again.vertex_positions(), ref.vertex_positions())
+    # A valid file of other inputs under this name is caught by its key.
+    other = PrecomputeCache(tmp_path / "other")
+    _run(other, dict(OV, **{"model.modes": 5}))
+    foreign = sorted((tmp_path / "other").glob("bases-*.npz"))[0]
+    files[0].write_bytes(foreign.read_bytes())
+    cache = PrecomputeCache(tmp_path)
+    _run(cache)
+    events = [e for e in cache.events if e[0] == "bases"]
+    assert events[0][1] == "corrupt" and "other inputs" in events[0][2]
