@@ -10,6 +10,7 @@ import numpy as np
 from .errors import MeshError, SceneError
 from .fem.materials import make_material
 from .mesh import box, composite, extract_surface, graded_block, load_mesh, select_vertices, sheet
+from .mesh.voxels import voxel_body
 
 
 @dataclass(frozen=True)
@@ -25,7 +26,7 @@ class Body:
     material: object
 
 
-_GENERATORS = {"box": box, "sheet": sheet, "graded_block": graded_block}
+_GENERATORS = {"box": box, "sheet": sheet, "graded_block": graded_block, "voxels": voxel_body}
 
 
 def build_mesh(spec, base_dir, source="<scene>"):
@@ -44,7 +45,7 @@ def build_mesh(spec, base_dir, source="<scene>"):
                 mesh = _GENERATORS[gen](**spec)
             else:
                 raise SceneError(f"{where}.generator: unknown generator {gen!r} "
-                                 f"(box, sheet, graded_block, composite)")
+                                 f"(box, sheet, graded_block, voxels, composite)")
         else:
             raise SceneError(f"{where}: needs either 'generator' or 'file'")
     except TypeError as err:

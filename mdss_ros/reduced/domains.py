@@ -102,8 +102,9 @@ class FullDomain:
         return 3 * int(self.free.sum())
 
 
-def submesh_around(tets, vertices_of_domain, n_verts, layers=1):
-    """The domain's vertices grown by `layers` rings of elements, and the tets inside.
+def submesh_around(tets, vertices_of_domain, n_verts, layers=1, max_growth=3.0):
+    """The domain's vertices grown by `layers` rings of elements (stopping once the region
+    has max_growth times the domain's vertices), and the tets inside.
 
     Returns (sub_vertices (k,) global ids, sub_tets (m, 4) local ids, keep (n_i,) local
     ids of the domain's own vertices). Modes computed on the grown region and then
@@ -112,7 +113,10 @@ def submesh_around(tets, vertices_of_domain, n_verts, layers=1):
     """
     in_dom = np.zeros(n_verts, dtype=bool)
     in_dom[vertices_of_domain] = True
+    limit = max_growth * len(vertices_of_domain)
     for _ in range(layers - 1):
+        if in_dom.sum() >= limit:
+            break
         in_dom[np.unique(tets[in_dom[tets].any(axis=1)])] = True
     touching = in_dom[tets].any(axis=1)
     sub_t = tets[touching]
@@ -154,7 +158,8 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
         return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
                               mass=m, U=U, movable=fixed_local.size == 0, forces=forces,
                               basis_info=dict(basis_info or {}, seconds=time.perf_counter() - t0, cached=True))
-    sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X), layers)
+    sub_v, sub_t, keep = submesh_around(body.tets, verts, len(X), layers,
+                                        float(basis_opts.pop("max_growth", 3.0)))
     sub_local = np.full(len(X), -1, dtype=np.int64)
     sub_local[sub_v] = np.arange(len(sub_v))
     if complete:    # every free DOF: the reduced model is an exact change of basis (tests)
