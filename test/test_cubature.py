@@ -7,7 +7,8 @@ from mdss_ros.reduced.cubature import build_domain_cubature, greedy_nnls
 from mdss_ros.reduced.sampled_forces import SampledDomainForces
 from mdss_ros.reduced.training import generate_training
 
-SMALL = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 8, "gravity": [0, 0, 0]}
+SMALL = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 8, "gravity": [0, 0, 0],
+         "model.cubature": {"samples": 0}}
 
 
 @pytest.fixture(scope="module")

@@ -52,6 +52,21 @@ def signed_distance(spec, points):
     raise MeshError(f"unknown primitive shape {shape!r} (sphere, ellipsoid, box, capsule, cylinder)")
 
 
+def largest_face_connected(occupied):
+    """Keep the largest set of voxels connected through faces (bool (nz, ny, nx)).
+
+    Voxels meeting only along an edge or at a corner share two or one vertices: a hinge
+    that makes the stiffness singular. Dropping what hangs on by such contacts removes
+    those zero-energy mechanisms."""
+    from scipy import ndimage
+    labels, count = ndimage.label(occupied)          # default structure: 6-connectivity
+    if count <= 1:
+        return occupied
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return labels == int(np.argmax(sizes))
+
+
 def voxel_body(primitives, cell):
     """TetMesh of the union of primitives, voxelised at `cell` (6 tets per voxel).
 
@@ -81,6 +96,7 @@ def voxel_body(primitives, cell):
     inside = sdf <= 0.0
     if not inside.any():
         raise MeshError(f"no voxel of size {cell} lies inside the primitives; use a smaller cell")
+    inside = largest_face_connected(inside.reshape(n[2], n[1], n[0])).ravel()
     grid = tensor_grid(*axes)
     tets = grid.tets[np.repeat(inside, 6)]
     return remove_unreferenced(TetMesh(grid.vertices, tets))

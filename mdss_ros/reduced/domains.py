@@ -114,11 +114,13 @@ def submesh_around(tets, vertices_of_domain, n_verts, layers=1, max_growth=3.0):
     in_dom = np.zeros(n_verts, dtype=bool)
     in_dom[vertices_of_domain] = True
     limit = max_growth * len(vertices_of_domain)
-    for _ in range(layers - 1):
-        if in_dom.sum() >= limit:
+    for k in range(layers):
+        if k > 0 and in_dom.sum() >= limit:
             break
         in_dom[np.unique(tets[in_dom[tets].any(axis=1)])] = True
-    touching = in_dom[tets].any(axis=1)
+    # Tets wholly inside the grown vertex set: a tet that only touches it at a vertex or
+    # an edge would hang on a hinge and give the stiffness a zero-energy mode.
+    touching = in_dom[tets].all(axis=1)
     sub_t = tets[touching]
     sub_v = np.unique(sub_t)
     local = np.full(n_verts, -1, dtype=np.int64)
