@@ -32,7 +32,8 @@ from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..precompute import PrecomputeCache, cache_key, code_hash
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
-from .coupling import project_coupling, project_coupling_left, project_forces, skew_batch, spring_forces
+from .coupling import (TwoPhaseProjection, project_coupling, project_coupling_left, project_forces, skew_batch,
+                       spring_forces)
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, _orthonormalise, fictitious_forces
 
@@ -654,6 +655,9 @@ class ReducedModel:
         if JL is not None:
             project_coupling_left(self.c_elem, f_c, K_c if want_hessian else np.zeros((len(f_c), 12, 12)),
                                   JL, J, self.J_cols, G, K_ss if want_hessian else np.zeros((self.S, self.S)))
+        elif want_hessian and self.F == 0:
+            project_forces(self.c_elem, f_c, J, self.J_cols, G)
+            self._two_phase().add(K_c, J, K_ss)
         elif want_hessian:
             project_coupling(self.c_elem, f_c, K_c, J, self.J_cols, self.J_full, self.J_icol, G, K_ss, K_sI)
             if self.F:
@@ -664,6 +668,15 @@ class ReducedModel:
         t2 = time.perf_counter()
         self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
         return G, K_ss, K_sI, K_ff, energy, J, x_I
+
+    def _two_phase(self):
+        """The coupling projection's static data, built once per coupling set."""
+        if getattr(self, "_tp_for", None) is not self.c_elem:
+            sub = self.sub_index_of_domain[self.vertex_domain[self.iface]]
+            sizes = np.array([dom.n_dofs for dom in self.subspace])
+            self._tp = TwoPhaseProjection(self.c_elem, sub, sizes, self.sub_offsets)
+            self._tp_for = self.c_elem
+        return self._tp
 
     def _weighted_left_J(self, J, x_I, frames):
         """Left factor of the non-uniform interface cubature (see cubature.py): per sample
