@@ -170,6 +170,8 @@ def vertex_pair_slots(elem, vertex_sub, max_slots=None):
     """
     n_c, k = elem.shape
     n_I = len(vertex_sub)
+    if n_c == 0:
+        return np.full((n_I, 1), -1, dtype=np.int64), np.zeros((0, k, k), dtype=np.int64)
     a_ids = np.repeat(elem, k, axis=1).ravel()                 # (n_c*k*k,) vertex a of each pair
     b_dom = vertex_sub[np.tile(elem, (1, k)).ravel()]          # domain of b
     key = np.unique(a_ids * (vertex_sub.max() + 1) + b_dom)
