@@ -48,6 +48,8 @@ class Simulator:
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
         self._collider_names = set(scene["colliders"])
+        if hasattr(self.model, "watch"):
+            self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
         self.reset()
 
     # ----------------------------------------------------------------- state

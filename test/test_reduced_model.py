@@ -270,3 +270,12 @@ def test_two_phase_coupling_projection_equals_per_pair_kernel():
         o = m.sub_offsets[k]
         K_dom[o:o + dom.r, o:o + dom.r] = dom.reduced_tangent(m.q[k])[2]
     np.testing.assert_allclose(K_new, K_ref + K_dom, rtol=1e-10, atol=1e-8 * np.abs(K_ref).max())
+
+
+def test_watched_surface_positions_equal_general_path():
+    sim = Simulator(_scene(pins=False, domains={"count": 3}, modes=5))
+    sim.model.set_rigid_velocity([0.1, 0.0, 0.0], [0.0, 1.0, 2.0])
+    sim.set_wrench("tip", force=(0.0, 0.0, -1.0))
+    sim.step(5)
+    ids = sim.body.surface.vertex_ids
+    np.testing.assert_allclose(sim.surface_positions(), sim.model.positions_of(ids.copy()), atol=1e-14)

@@ -22,7 +22,7 @@ FEM scatter instead of this kernel; a full-subspace pair lands in A_sI, the dens
 block between subspace DOFs and the full-space DOFs that touch a coupling element.
 """
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 
 def skew_batch(p):
@@ -186,15 +186,27 @@ def vertex_pair_slots(elem, vertex_sub, max_slots=None):
     return slot_dom, pair_slot.reshape(n_c, k, k).astype(np.int64)
 
 
-@njit(cache=True)
-def accumulate_KJ(elem, K_e, J, pair_slot, KJ):
-    """Phase 1: KJ[a, slot] += K_e[a, b] J_b for every vertex pair of every element.
+def vertex_incidence(elem, n_I):
+    """CSR lists of the (element, slot) pairs at each interface vertex: (ptr (n_I+1,), inc (n, 2))."""
+    flat = elem.ravel()
+    order = np.argsort(flat, kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n_I))]).astype(np.int64)
+    inc = np.stack([order // elem.shape[1], order % elem.shape[1]], axis=1).astype(np.int64)
+    return ptr, inc
+
+
+@njit(cache=True, parallel=True)
+def accumulate_KJ(elem, K_e, J, pair_slot, ptr, inc, KJ):
+    """Phase 1: KJ[a, slot] += K_e[a, b] J_b for every vertex pair of every element,
+    parallel over interface vertices a (each writes only its own rows).
     KJ (n_I, D, 3, s_max) must be zeroed by the caller."""
-    n_c, k = elem.shape
+    n_I = ptr.shape[0] - 1
+    k = elem.shape[1]
     s_max = J.shape[2]
-    for e in range(n_c):
-        for a in range(k):
-            la = elem[e, a]
+    for la in prange(n_I):
+        for m in range(ptr[la], ptr[la + 1]):
+            e = inc[m, 0]
+            a = inc[m, 1]
             for b in range(k):
                 lb = elem[e, b]
                 sl = pair_slot[e, a, b]
@@ -214,6 +226,7 @@ class TwoPhaseProjection:
     def __init__(self, elem, vertex_sub, sizes, offsets):
         self.elem = elem
         self.slot_dom, self.pair_slot = vertex_pair_slots(elem, vertex_sub)
+        self.ptr, self.inc = vertex_incidence(elem, len(vertex_sub))
         self.sizes, self.offsets = sizes, offsets
         self.groups = []                       # (k, l, vertex ids, slot ids)
         n_I, D = self.slot_dom.shape
@@ -230,7 +243,7 @@ class TwoPhaseProjection:
     def add(self, K_e, J, A_ss):
         n_I, D = self.slot_dom.shape
         KJ = np.zeros((n_I, D, 3, J.shape[2]))
-        accumulate_KJ(self.elem, K_e, J, self.pair_slot, KJ)
+        accumulate_KJ(self.elem, K_e, J, self.pair_slot, self.ptr, self.inc, KJ)
         for k, l, va, sl in self.groups:
             sk, sl_ = self.sizes[k], self.sizes[l]
             Jk = J[va, :, :sk].reshape(-1, sk)

@@ -554,8 +554,35 @@ class ReducedModel:
         p = dom.r_local[local_ids] + np.einsum("lia,a->li", dom.U3[local_ids], q[k])
         return frames.c[k] + p @ frames.R[k].T
 
+    def _output_plan(self, ids):
+        """Per domain: (rows of ids in it, its basis rows (3m, r) and rest coordinates (m, 3)),
+        kept contiguous so publishing the same vertices every frame is one matvec per domain."""
+        dom_of = self.vertex_domain[ids]
+        plan = []
+        for i, (kind, k) in enumerate(self.domain_kind):
+            sel = np.flatnonzero(dom_of == i)
+            if sel.size == 0:
+                continue
+            if kind == "sub":
+                loc = self.vertex_local[ids[sel]]
+                dom = self.subspace[k]
+                plan.append((kind, k, sel, np.ascontiguousarray(dom.U3[loc].reshape(-1, dom.r)),
+                             dom.r_local[loc]))
+            else:
+                plan.append((kind, k, sel, None, None))
+        return plan
+
     def positions_of(self, ids, q=None, frames=None, x_full=None):
         """World positions (len(ids), 3) of the given global vertex ids."""
+        if q is None and frames is None and x_full is None and ids is getattr(self, "_plan_ids", None):
+            out = np.empty((len(ids), 3))
+            for kind, k, sel, U_rows, r_rows in self._plan:
+                if kind == "sub":
+                    p = r_rows + (U_rows @ self.q[k]).reshape(-1, 3)
+                    out[sel] = self.frames.c[k] + p @ self.frames.R[k].T
+                else:
+                    out[sel] = self.x_full[ids[sel]]
+            return out
         q = self.q if q is None else q
         frames = self.frames if frames is None else frames
         x_full = self.x_full if x_full is None else x_full
@@ -571,6 +598,11 @@ class ReducedModel:
             else:
                 out[sel] = x_full[ids[sel]]
         return out
+
+    def watch(self, ids):
+        """Make positions_of(ids) fast for this exact id array (e.g. the surface)."""
+        self._plan_ids = ids
+        self._plan = self._output_plan(np.asarray(ids, dtype=np.int64))
 
     def vertex_positions(self):
         return self.positions_of(np.arange(len(self.body.vertices)))
