@@ -97,8 +97,12 @@ def cmd_bench(args):
     for k in range(warm + args.steps):
         player.apply_due(sim)
         sim.step()
+        t_s = time.perf_counter()
+        sim.surface_positions()       # what a publisher needs every frame
+        surface_ms = 1e3 * (time.perf_counter() - t_s)
         if k >= warm:
-            rows.append(sim.stats())
+            st = sim.stats()
+            rows.append(dict(st, surface_ms=surface_ms, step_and_surface_ms=st["step_ms"] + surface_ms))
     keys = [k for k, v in rows[0].items() if k.endswith("_ms")]
     med = {k: float(np.median([r[k] for r in rows])) for k in keys}
     st = rows[-1]
@@ -171,6 +175,52 @@ def bench_fem_scaling(args):
     return 0
 
 
+def cmd_verify(args):
+    """`mdss verify NAME --out DIR [--quick] [--set KEY=VALUE]`: reports in verify/reduced_reports.py."""
+    from .verify.reduced_reports import ReportError, run_reports
+    try:
+        return run_reports(args.name, args.out, quick=args.quick, overrides=_parse_sets(args.set))
+    except ReportError as err:
+        raise SystemExit(f"mdss verify: {err}")
+
+
+def cmd_precompute(args):
+    """Build (or load) a scene's precompute with progress, then summarise the cache."""
+    from .errors import MdssError
+    from .precompute import PrecomputeCache
+    from .simulator import Simulator
+    cache = PrecomputeCache(args.cache_dir) if args.cache_dir else PrecomputeCache()
+    t0 = time.perf_counter()
+    start = time.perf_counter()
+
+    def progress(msg):
+        print(f"  [{time.perf_counter() - start:7.1f} s] {msg}", flush=True)
+
+    print(f"mdss precompute: cache folder {cache.folder}")
+    try:
+        sim = Simulator(args.scene, overrides=_parse_sets(args.set) or None, progress=progress, cache=cache)
+    except MdssError as err:
+        raise SystemExit(f"mdss precompute: {err}")
+    total = time.perf_counter() - t0
+    st = sim.stats()
+    print(f"mdss precompute: scene {sim.scene.name!r}: {st['kind']} model, {st['vertices']} vertices, "
+          f"{st['tets']} tets, {st['dofs']} DOFs, {st['domains']} domains, ready in {total:.2f} s")
+    for stage, kind, where in cache.events:
+        size = ""
+        if kind in ("hit", "saved") and Path(where).exists():
+            size = f" ({Path(where).stat().st_size / 1e6:.2f} MB)"
+        print(f"  {stage:9s} {kind:8s} {where}{size}")
+    info = getattr(sim.model, "cubature_info", None)
+    if info and info.get("samples"):
+        for k, d in enumerate(info.get("domains", [])):
+            print(f"  cubature domain {k}: {d['samples']} of {d['elements']} elements, "
+                  f"held-out error {d.get('held_out_error', float('nan')):.2e}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"scene": sim.scene.name, "seconds": total,
+                                               "events": cache.events, "stats": st}, indent=2, default=str))
+    return 0
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="mdss", description="multi-domain subspace simulation tools")
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -188,6 +238,12 @@ def main(argv=None):
     p.add_argument("--json", help="write a JSON summary here")
     p.set_defaults(func=cmd_run)
 
+    p = sub.add_parser("precompute", help="build a scene's bases and cubature into the cache, with progress")
+    scene_args(p)
+    p.add_argument("--cache-dir", help="cache folder (default $MDSS_CACHE_DIR or ~/.cache/mdss_ros)")
+    p.add_argument("--json", help="write a summary here")
+    p.set_defaults(func=cmd_precompute)
+
     p = sub.add_parser("bench", help="time the step phases of a scene, or the full-space FEM scaling")
     scene_args(p, required=False)
     p.add_argument("--steps", type=int, default=20)
@@ -195,6 +251,14 @@ def main(argv=None):
     p.add_argument("--fem-scaling", action="store_true", help="full-space Newton iteration cost vs mesh size")
     p.add_argument("--fem-sizes", default="10000,50000,240000", help="tet counts for --fem-scaling")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("verify", help="verification reports (JSON + PNG plots into --out)")
+    p.add_argument("name", help="energy, coupling, reduced, cantilever or all")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--quick", action="store_true", help="a small version of the report")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a study setting, e.g. --set horizon=0.5 (one report only)")
+    p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser("_bench_fem_one", help=argparse.SUPPRESS)
     p.add_argument("n", type=int)
