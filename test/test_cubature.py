@@ -137,3 +137,17 @@ def test_nonuniform_coupling_forces_conserve_momentum():
     assert scale > 0
     assert np.abs(force).max() < 1e-10 * scale
     assert np.abs(torque).max() < 1e-10 * scale
+
+
+@pytest.mark.slow
+def test_cubature_report_quick(tmp_path):
+    from mdss_ros.cli import main
+    assert main(["verify", "cubature", "--quick", "--out", str(tmp_path)]) == 0
+    import json
+    result = json.loads((tmp_path / "cubature.json").read_text())
+    assert (tmp_path / "cubature.png").exists()
+    for d in result["domains"]:
+        errs = [e["held_out"] for e in d["errors"]]
+        assert errs[-1] < errs[0]
+    for it in result["interfaces"]:
+        assert np.mean([e["mean"] for e in it["nonuniform"]]) <= np.mean([e["mean"] for e in it["uniform"]])

@@ -117,3 +117,15 @@ def _print_summary(result, say):
         say(f"  interface {'-'.join(it['pair'])} ({it['elements']} elements): samples / uniform / non-uniform")
         for u, v in zip(it["uniform"], it["nonuniform"]):
             say(f"    {u['samples']:5d}  {u['mean']:.2e}  {v['mean']:.2e}")
+
+
+def cubature_report(out, quick=False, overrides=None, log=print):
+    """`mdss verify cubature`: the registry entry (table and plots for the summary)."""
+    if overrides:
+        raise ValueError("mdss verify cubature takes no --set options")
+    lines = []
+    result = cubature_study(out, quick=quick, progress=lambda msg: (lines.append(msg), log(msg)))
+    start = next(i for i, line in enumerate(lines) if line.startswith("cubature study"))
+    result["table"] = "\n".join(lines[start:])
+    result["plots"] = [str(Path(out) / "cubature.png")]
+    return result

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-BUILT = ("energy", "coupling", "reduced", "cantilever")
+BUILT = ("energy", "coupling", "reduced", "cantilever", "cubature")
 NOT_BUILT = ("hertz", "modes")
 
 # Material of every beam study unless a study says otherwise: a soft StVK rubber
@@ -330,6 +330,9 @@ def _study(name):
         return accuracy_report
     if name == "cantilever":
         return cantilever_report
+    if name == "cubature":
+        from .cubature_study import cubature_report
+        return cubature_report
     raise KeyError(name)
 
 
