@@ -19,22 +19,19 @@ def pytest_collection_modifyitems(config, items):
 
 
 @pytest.fixture
-def ros_env(worker_id="main"):
-    """Environment for a child ROS process: a domain id no other test uses, localhost-only DDS."""
-    env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(_next_domain_id())
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    return env
-
-
-_domain_counter = [0]
-
-
-def _next_domain_id():
-    # 0..101 are valid everywhere; spread by pid so two pytest runs on one machine do not meet.
-    _domain_counter[0] += 1
-    return 1 + (os.getpid() * 7 + _domain_counter[0]) % 100
+def ros_env():
+    """Environment for a child ROS process: a ROS_DOMAIN_ID leased through a lock file (no
+    other test or concurrent run can hold it) and localhost-only DDS."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
+    from launch_testing import DomainLease
+    from launch_testing import ros_env as make_env
+    lease = DomainLease()
+    try:
+        yield make_env(lease.domain_id)
+    finally:
+        lease.release()
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -1,0 +1,791 @@
+"""The ROS 2 node (DESIGN.md "ROS interface (contract)"): a thin shell over Simulator.
+
+    mdss_node --ros-args --params-file config/params.yaml -p scene:=cantilever
+    python -m mdss_ros.node --ros-args -p scene:=msg_scenes/cantilever.yaml
+
+Everything physical happens in `Simulator`; this module turns messages into Simulator
+calls (through mdss_ros.ros.validate) and Simulator arrays into messages (through
+mdss_ros.ros.convert), and decides *when*:
+
+- Stepping. A steady-clock timer fires every physics_dt / real_time_factor seconds of
+  wall time (real_time_factor <= 0: as fast as possible); each firing is one
+  Simulator.step() followed by /clock and the outputs that are due, run after the
+  input messages that arrived meanwhile. A late step is not made up for: under load
+  the measured real-time factor drops instead.
+- Inputs take effect at a defined step, so a run is reproducible from its inputs. An
+  input stamped s (sim time, from /clock) is applied just before the step that starts
+  at the first sim time t with s <= t + dt/2 (stamps round to the nearest step, as
+  mdss_ros.timeline.TimelinePlayer does); an unstamped one (stamp 0) before the next
+  step; inputs due at the same step are applied in stamp order, then arrival order.
+- Outputs are due on a grid of their own rate in sim time: step k publishes an output
+  of rate r when floor(k dt r) changed. At real_time_factor 1 that is wall time too; a
+  rate >= 1/physics_dt publishes every step, 0 turns an output off. The state at t = 0
+  is published at start and after every reset. /diagnostics runs on wall time.
+- Every array is checked before it is published. A non-finite state resets the
+  simulator, is logged, and /diagnostics reports stability "failed".
+"""
+import math
+import signal
+import sys
+import time
+from collections import deque
+
+import numpy as np
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped, WrenchStamped
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import PointCloud2
+from shape_msgs.msg import Mesh
+from std_srvs.srv import Empty, Trigger
+from visualization_msgs.msg import Marker
+
+from .errors import MdssError
+from .ros import convert
+from .ros import validate
+from .ros.validate import InputRejected, Limits
+from .scene import load_scene, read_yaml, resolve_scene_path, scene_search_path
+from .simulator import Simulator
+
+NODE_NAME = "mdss"
+DIAGNOSTIC_NAME = "mdss: simulation"
+WARN_PERIOD_S = 2.0   # one warning per rejection kind per this many seconds
+
+# name: (default, description, changeable at runtime). physics_dt's default is the scene's.
+PARAMETERS = {
+    "scene": ("", "scene file (path) or name of a scene in msg_scenes/", False),
+    "scene_overrides": ("", "dotted scene keys set on load: a list of KEY=VALUE "
+                            "(-p scene_overrides:=\"[model.modes=6, body.mesh.cell=0.05]\") or a "
+                            "YAML/JSON mapping in a string (params file: '{\"model.modes\": 6}')", False),
+    "physics_dt": (0.0, "physics time step in s (default: the scene's model.integrator.dt)", False),
+    "real_time_factor": (1.0, "sim seconds per wall second; <= 0 steps as fast as possible", True),
+    "start_paused": (False, "start with physics paused (~/unpause_physics or ~/step to advance)", False),
+    "points_publish_rate": (30.0, "~/surface/points rate in Hz of sim time (0: off)", True),
+    "mesh_publish_rate": (1.0, "~/surface/mesh rate in Hz of sim time (0: off)", True),
+    "marker_publish_rate": (10.0, "~/surface/marker rate in Hz of sim time (0: off)", True),
+    "pose_publish_rate": (90.0, "~/domain_poses, ~/domain_transforms and collider wrench rate "
+                                "in Hz of sim time (0: off)", True),
+    "diagnostics_rate": (1.0, "/diagnostics rate in Hz of wall time (> 0)", True),
+    "world_frame": ("world", "frame of all geometry in and out", True),
+    "wrench_timeout_s": (0.0, "clear a wrench not refreshed for this many s of sim time (0: hold forever)", True),
+    "max_force": (1.0e5, "reject wrench and point forces above this magnitude (N)", True),
+    "max_torque": (1.0e4, "reject wrench torques above this magnitude (N m)", True),
+    "max_position": (1.0e3, "reject points and collider positions farther from the origin (m)", True),
+    "max_input_age": (1.0, "reject inputs stamped more than this many s before the sim time", True),
+    "max_input_lead": (60.0, "reject inputs stamped more than this many s after the sim time", True),
+    "max_point_forces": (1000, "reject ~/point_forces clouds with more points", True),
+    "mcap_path": ("", "MCAP recording file (not built in this version: warns)", False),
+    "rerun_mode": ("off", "rerun logging: off, file, spawn, serve (not built in this version: warns)", False),
+    "rerun_path": ("", "rerun .rrd file for rerun_mode file", False),
+}
+_RATES = ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate", "pose_publish_rate")
+_POSITIVE = ("diagnostics_rate", "max_force", "max_torque", "max_position", "max_input_age",
+             "max_input_lead", "physics_dt")
+_RERUN_MODES = ("off", "file", "spawn", "serve")
+_FORCE_INPUTS = ("wrench", "point_forces")
+
+
+class StartupError(MdssError):
+    """The node cannot start (scene or parameters); the message says what to fix."""
+
+
+def _qos(depth, latched=False):
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def available_scenes():
+    names = set()
+    for folder in scene_search_path()[1:]:
+        if folder.is_dir():
+            names.update(p.stem for p in folder.glob("*.yaml"))
+    return sorted(names)
+
+
+def precompute_notice(scene):
+    """What a start costs before the node spins (the precompute cache is a later module).
+
+    Uses mdss_ros.precompute.cache_status(scene) -> {"hit": bool, "path": str,
+    "estimate_s": float or None} when that exists.
+    """
+    try:
+        from . import precompute
+    except ImportError:
+        return "no precompute cache in this version: the model is built now, at every start"
+    if not hasattr(precompute, "cache_status"):
+        return "building the model (precompute stages load from the cache when it has them)"
+    status = precompute.cache_status(scene)
+    if status.get("hit"):
+        return f"precompute cache hit ({status.get('path')})"
+    est = status.get("estimate_s")
+    return (f"precompute cache missing ({status.get('path')}): building it takes about "
+            f"{est:.0f} s" if est is not None else "precompute cache missing: building it now")
+
+
+def parse_overrides(value):
+    """{dotted key: value} of the scene_overrides parameter.
+
+    value: "" (none); a list of "KEY=VALUE" strings (values parsed as YAML, like
+    `mdss run --set`); or a string holding a YAML/JSON mapping or "KEY=VALUE[, ...]".
+    """
+    if isinstance(value, str):
+        text = value.strip()
+        if not text:
+            return {}
+        try:
+            parsed = read_yaml(text)
+        except Exception:
+            parsed = None
+        if isinstance(parsed, dict) and all(isinstance(k, str) for k in parsed):
+            return parsed
+        items = [t for t in text.replace(",", " ").split() if t]
+    elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+        items = list(value)
+    else:
+        raise ValueError(f"scene_overrides must be a string or a list of KEY=VALUE strings, got {value!r}")
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"scene_overrides: expected KEY=VALUE (e.g. model.modes=6), got {item!r}")
+        try:
+            out[key.strip()] = read_yaml(text)
+        except Exception as err:
+            raise ValueError(f"scene_overrides: {item!r}: the value is not YAML: {err}") from err
+    return out
+
+
+class _Input:
+    __slots__ = ("due", "seq", "kind", "apply")
+
+    def __init__(self, due, seq, kind, apply):
+        self.due, self.seq, self.kind, self.apply = due, seq, kind, apply
+
+
+class MdssNode(Node):
+    """The simulation node. Builds the simulator (the slow part) in the constructor."""
+
+    def __init__(self, node_name=NODE_NAME, **kwargs):
+        super().__init__(node_name, **kwargs)
+        log = self.get_logger()
+        self._declare("scene")
+        self._declare("scene_overrides")
+        scene = self._load_scene()
+        self._declare("physics_dt", default=float(scene.dt))
+        for name in PARAMETERS:
+            if not self.has_parameter(name):
+                self._declare(name)
+        self._check_startup_parameters()
+        self._warn_unknown_parameters()
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        if self._p("physics_dt") != scene.dt:
+            scene = load_scene(scene, {"model.integrator.dt": self._p("physics_dt")})
+        log.info(f"scene {scene.name!r} ({scene.source}): {scene['model']['kind']} model, "
+                 f"dt = {scene.dt:.6g} s. {precompute_notice(scene)}")
+        t0 = time.perf_counter()
+        self.sim = Simulator(scene, progress=lambda msg: log.info(f"precompute: {msg}"))
+        st = self.sim.stats()
+        self.surface_ids = np.asarray(self.sim.surface_vertex_ids())
+        self.triangles = np.asarray(self.sim.surface_triangles())
+        log.info(f"model built in {time.perf_counter() - t0:.2f} s: {st['vertices']} vertices, "
+                 f"{st['tets']} tets, {st['dofs']} DOFs, {st['domains']} domains, surface "
+                 f"{len(self.surface_ids)} vertices / {len(self.triangles)} triangles")
+
+        self.handles = set(scene["handles"])
+        self.colliders = list(scene["colliders"])
+        self.domain_names = self._domain_names()
+        vdom = getattr(self.sim.model, "vertex_domain", None)
+        self.surface_domain = (np.zeros(len(self.surface_ids), np.int64) if vdom is None
+                               else np.asarray(vdom)[self.surface_ids])
+        self._points = convert.SurfacePoints(self.surface_domain)
+        self._mesh = convert.MeshEncoder(self.triangles)
+        self._marker = convert.MarkerEncoder(self.triangles, self.surface_domain)
+        self._limits = self._read_limits()
+
+        # Bookkeeping (all touched only from callbacks of this node's executor).
+        self._paused = bool(self._p("start_paused"))
+        self._queue = []
+        self._seq = 0
+        self._held = {}                       # handle -> sim time its wrench was last set
+        self._rejected = dict.fromkeys(validate.KINDS, 0)
+        self._warned = {}
+        self._counts = dict.fromkeys(("received", "applied", "late"), 0)
+        self._stability, self._failures, self._last_failure = "ok", 0, ""
+        self._failing = False
+        self._step_ms, self._cycle_ms = deque(maxlen=100000), deque(maxlen=100000)
+        self._window = (time.monotonic(), self.sim.time)
+        self._traps = {}
+
+        self._make_interfaces()
+        self._publish_topology()
+        self._publish_state(initial=True)
+        log.info(f"ready: {'paused' if self._paused else 'running'} at real_time_factor "
+                 f"{self._p('real_time_factor'):g}; inputs on {self.resolve_topic_name('~/wrench')}, "
+                 f"{self.resolve_topic_name('~/point_forces')}"
+                 + "".join(f", {self._collider_topic(c, 'pose')}" for c in self.colliders))
+
+    # ------------------------------------------------------------------ parameters
+    def _declare(self, name, default=None):
+        value, text, runtime = PARAMETERS[name]
+        if default is not None:
+            value = default
+        # -p real_time_factor:=0 is an int; scene_overrides is a string or a list of strings
+        dynamic = isinstance(value, float) or name == "scene_overrides"
+        desc = ParameterDescriptor(description=text, read_only=not runtime, dynamic_typing=dynamic)
+        try:
+            self.declare_parameter(name, value, desc)
+        except Exception as err:   # e.g. -p max_point_forces:=10.5 for an integer parameter
+            raise StartupError(f"parameter {name}: {err}") from err
+
+    def _p(self, name):
+        value = self.get_parameter(name).value
+        if isinstance(PARAMETERS[name][0], float) and isinstance(value, int) and not isinstance(value, bool):
+            return float(value)
+        return value
+
+    @staticmethod
+    def _check(name, value):
+        """None if value is acceptable for parameter name, else the reason."""
+        default = PARAMETERS[name][0]
+        if isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                return f"{name} must be a finite number, got {value!r}"
+            if name in _RATES and value < 0:
+                return f"{name} must be >= 0 (0 turns the output off), got {value}"
+            if name in _POSITIVE and not value > 0:
+                return f"{name} must be > 0, got {value}"
+            if name == "wrench_timeout_s" and value < 0:
+                return f"wrench_timeout_s must be >= 0 (0: no timeout), got {value}"
+        elif name == "scene_overrides":
+            try:
+                parse_overrides(value)
+            except ValueError as err:
+                return str(err)
+        elif type(value) is not type(default):
+            return f"{name} must be a {type(default).__name__}, got {value!r}"
+        if name == "max_point_forces" and value < 1:
+            return f"max_point_forces must be >= 1, got {value}"
+        if name == "world_frame" and not value:
+            return "world_frame must not be empty"
+        if name == "rerun_mode" and value not in _RERUN_MODES:
+            return f"rerun_mode must be one of {', '.join(_RERUN_MODES)}, got {value!r}"
+        return None
+
+    def _check_startup_parameters(self):
+        for name in PARAMETERS:
+            reason = self._check(name, self.get_parameter(name).value)
+            if reason:
+                raise StartupError(f"parameter {reason}")
+        if self._p("mcap_path"):
+            self.get_logger().warn("mcap_path is set but MCAP recording is not built in this version; "
+                                   "nothing is recorded")
+        if self._p("rerun_mode") != "off":
+            self.get_logger().warn("rerun_mode is set but rerun logging is not built in this version")
+
+    def _warn_unknown_parameters(self):
+        known = set(PARAMETERS) | {"use_sim_time", "start_type_description_service"}
+        for name in getattr(self, "_parameter_overrides", {}):
+            if name not in known and not name.startswith("qos_overrides."):
+                self.get_logger().warn(f"unknown parameter {name!r} ignored "
+                                       f"(parameters: {', '.join(sorted(PARAMETERS))})")
+
+    def _validate_parameters(self, params):
+        for p in params:
+            if p.name in PARAMETERS:
+                reason = self._check(p.name, p.value)
+                if reason:
+                    return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params):
+        names = {p.name for p in params}
+        if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
+                    "max_point_forces"}:
+            self._limits = self._read_limits()
+        if "real_time_factor" in names:
+            self._step_timer.timer_period_ns = self._step_period_ns()
+            if not self._paused:
+                self._step_timer.reset()
+            self._window = (time.monotonic(), self.sim.time)
+        if "diagnostics_rate" in names:
+            self._diag_timer.timer_period_ns = int(1e9 / self._p("diagnostics_rate"))
+            self._diag_timer.reset()
+
+    def _read_limits(self):
+        return Limits(**{f: self._p(f) for f in ("max_force", "max_torque", "max_position", "max_input_age",
+                                                  "max_input_lead", "max_point_forces")})
+
+    def _load_scene(self):
+        name = self._p("scene")
+        if not name:
+            raise StartupError("parameter scene is not set: -p scene:=NAME_OR_PATH "
+                               f"(scenes: {', '.join(available_scenes()) or 'none found'})")
+        try:
+            overrides = parse_overrides(self._p("scene_overrides")) or None
+        except ValueError as err:
+            raise StartupError(str(err)) from err
+        if overrides:
+            self.get_logger().info(f"scene overrides: {overrides}")
+        try:
+            path = resolve_scene_path(name)
+        except MdssError as err:
+            raise StartupError(f"{err}; scenes by name: {', '.join(available_scenes()) or 'none'}") from err
+        try:
+            return load_scene(path, overrides)
+        except MdssError as err:
+            raise StartupError(str(err)) from err
+
+    def _domain_names(self):
+        n = len(self.sim.domain_poses())
+        names_of = getattr(self.sim.model, "domain_names", None)
+        names = list(names_of()) if callable(names_of) else ["body"]
+        if len(names) != n:
+            names = ["body"] if n == 1 else [f"domain_{i}" for i in range(n)]
+        return names
+
+    # ------------------------------------------------------------------ interfaces
+    def _collider_topic(self, name, leaf):
+        return self.resolve_topic_name(f"~/colliders/{name}/{leaf}")
+
+    def _make_interfaces(self):
+        for c in self.colliders:
+            try:
+                self._collider_topic(c, "pose")
+            except Exception as err:
+                raise StartupError(f"collider name {c!r} cannot be part of a topic name: {err}") from err
+        self.pub_topology = self.create_publisher(Mesh, "~/surface/topology", _qos(1, latched=True))
+        self.pub_points = self.create_publisher(PointCloud2, "~/surface/points", _qos(10))
+        self.pub_mesh = self.create_publisher(Mesh, "~/surface/mesh", _qos(2))
+        self.pub_marker = self.create_publisher(Marker, "~/surface/marker", _qos(2))
+        self.pub_poses = self.create_publisher(PoseArray, "~/domain_poses", _qos(10))
+        self.pub_transforms = self.create_publisher(TransformStamped, "~/domain_transforms",
+                                                    _qos(max(10, 2 * len(self.domain_names))))
+        self.pub_contacts = self.create_publisher(PointCloud2, "~/contacts", _qos(10))
+        self.pub_collider_wrench = {c: self.create_publisher(WrenchStamped, f"~/colliders/{c}/wrench", _qos(10))
+                                    for c in self.colliders}
+        # latched: a late subscriber learns the sim time even while physics is paused
+        self.pub_clock = self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", _qos(10))
+
+        self.create_subscription(WrenchStamped, "~/wrench", self._on_wrench, _qos(50))
+        self.create_subscription(PointCloud2, "~/point_forces", self._on_point_forces, _qos(50))
+        for c in self.colliders:
+            self.create_subscription(PoseStamped, f"~/colliders/{c}/pose",
+                                     lambda msg, c=c: self._on_collider_pose(c, msg), _qos(50))
+
+        self.create_service(Empty, "~/pause_physics", self._srv_pause)
+        self.create_service(Empty, "~/unpause_physics", self._srv_unpause)
+        self.create_service(Empty, "~/reset_simulation", self._srv_reset)
+        self.create_service(Trigger, "~/step", self._srv_step)
+        self.create_service(Trigger, "~/clear_forces", self._srv_clear_forces)
+
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        # The timer only triggers a guard condition whose callback steps: rclpy's executor
+        # runs ready timers before subscriptions, guard conditions after them, so inputs
+        # that arrived during a step are taken before the next one even when the timer is
+        # always ready (a model slower than real time, or real_time_factor <= 0).
+        self._step_guard = self.create_guard_condition(self._on_step_guard)
+        self._step_timer = self.create_timer(self._step_period_ns() * 1e-9, self._on_step_timer, clock=steady)
+        if self._paused:
+            self._step_timer.cancel()
+        self._diag_timer = self.create_timer(1.0 / self._p("diagnostics_rate"), self._on_diag_timer, clock=steady)
+
+    def _step_period_ns(self):
+        rtf = self._p("real_time_factor")
+        return int(round(1e9 * self.sim.dt / rtf)) if rtf > 0 else 0
+
+    # ------------------------------------------------------------------ inputs
+    def _reject(self, err, source):
+        self._rejected[err.kind] += 1
+        now = time.monotonic()
+        last, suppressed = self._warned.get(err.kind, (-math.inf, 0))
+        if now - last >= WARN_PERIOD_S:
+            more = f" (and {suppressed} more '{err.kind}' rejections since the last warning)" if suppressed else ""
+            self.get_logger().warn(f"rejected {source}: {err.reason}{more}")
+            self._warned[err.kind] = (now, 0)
+        else:
+            self._warned[err.kind] = (last, suppressed + 1)
+
+    def _enqueue(self, stamp, kind, apply):
+        due = validate.due_time(stamp, self.sim.time, self._limits)
+        if due is not None and due < self.sim.time - 0.5 * self.sim.dt:
+            self._counts["late"] += 1
+        self._seq += 1
+        self._queue.append(_Input(due, self._seq, kind, apply))
+
+    def _on_wrench(self, msg):
+        self._counts["received"] += 1
+        w = msg.wrench
+        try:
+            handle, force, torque = validate.wrench(
+                msg.header.frame_id, (w.force.x, w.force.y, w.force.z),
+                (w.torque.x, w.torque.y, w.torque.z), self.handles, self._limits)
+            self._enqueue(convert.seconds(msg.header.stamp), "wrench",
+                          lambda: self._apply_wrench(handle, force, torque))
+        except InputRejected as err:
+            self._reject(err, "~/wrench")
+
+    def _apply_wrench(self, handle, force, torque):
+        self.sim.set_wrench(handle, force, torque)
+        if force.any() or torque.any():
+            self._held[handle] = self.sim.time
+        else:
+            self._held.pop(handle, None)
+
+    def _on_point_forces(self, msg):
+        self._counts["received"] += 1
+        try:
+            points, forces, durations = validate.point_forces(msg, self._p("world_frame"), self._limits)
+            self._enqueue(convert.seconds(msg.header.stamp), "point_forces",
+                          lambda: [self.sim.add_point_force(p, f, d) for p, f, d in zip(points, forces, durations)])
+        except InputRejected as err:
+            self._reject(err, "~/point_forces")
+
+    def _on_collider_pose(self, name, msg):
+        self._counts["received"] += 1
+        p, o = msg.pose.position, msg.pose.orientation
+        try:
+            validate.frame(msg.header.frame_id, self._p("world_frame"), f"colliders/{name}/pose")
+            pos, quat = validate.pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w), self._limits)
+            self._enqueue(convert.seconds(msg.header.stamp), "collider_pose",
+                          lambda: self.sim.set_collider_pose(name, pos, quat))
+        except InputRejected as err:
+            self._reject(err, f"~/colliders/{name}/pose")
+
+    def _on_unknown_collider(self, name, msg):
+        self._counts["received"] += 1
+        self._reject(InputRejected("unknown_collider", f"the scene has no collider {name!r} "
+                                                       f"(colliders: {', '.join(self.colliders) or 'none'})"),
+                     f"~/colliders/{name}/pose")
+
+    def _trap_unknown_colliders(self):
+        """Subscribe to ~/colliders/<name>/pose topics of names the scene lacks, to count them."""
+        prefix = self.resolve_topic_name("~/colliders") + "/"
+        for topic, types in self.get_topic_names_and_types():
+            if not (topic.startswith(prefix) and topic.endswith("/pose")) or topic in self._traps:
+                continue
+            name = topic[len(prefix):-len("/pose")]
+            if name in self.colliders or "/" in name or "geometry_msgs/msg/PoseStamped" not in types:
+                continue
+            self._traps[topic] = self.create_subscription(
+                PoseStamped, topic, lambda msg, n=name: self._on_unknown_collider(n, msg), _qos(50))
+            self.get_logger().warn(f"a publisher appeared on {topic}, but the scene has no collider {name!r} "
+                                   f"(colliders: {', '.join(self.colliders) or 'none'}); its messages are "
+                                   f"counted as rejected_unknown_collider")
+
+    def _apply_due_inputs(self):
+        t_limit = self.sim.time + 0.5 * self.sim.dt
+        due = [i for i in self._queue if i.due is None or i.due <= t_limit]
+        if not due:
+            return
+        self._queue = [i for i in self._queue if not (i.due is None or i.due <= t_limit)]
+        due.sort(key=lambda i: (self.sim.time if i.due is None else i.due, i.seq))
+        for item in due:
+            try:
+                item.apply()
+                self._counts["applied"] += 1
+            except (KeyError, ValueError) as err:
+                self._reject(InputRejected("apply_error", f"{item.kind}: {err}"), item.kind)
+
+    def _expire_wrenches(self):
+        timeout = self._p("wrench_timeout_s")
+        if timeout <= 0:
+            return
+        for handle, t_set in list(self._held.items()):
+            if self.sim.time - t_set >= timeout - 1e-9:
+                self.sim.set_wrench(handle)
+                del self._held[handle]
+                self.get_logger().info(f"wrench on {handle!r} cleared: not refreshed for "
+                                       f"wrench_timeout_s = {timeout:g} s")
+
+    # ------------------------------------------------------------------ stepping
+    def _on_step_timer(self):
+        if not self._paused:
+            self._step_guard.trigger()
+
+    def _on_step_guard(self):
+        if not self._paused:
+            self.advance()
+
+    def advance(self):
+        """One physics step: due inputs, Simulator.step(), /clock and due outputs."""
+        w0 = time.perf_counter()
+        self._apply_due_inputs()
+        self._expire_wrenches()
+        k = self.sim.step_count
+        s0 = time.perf_counter()
+        try:
+            self.sim.step()
+        except Exception as err:  # a solver failure must not take the node down
+            self._fail(f"the step from t = {self.sim.time:.6g} s raised {type(err).__name__}: {err}")
+            return
+        self._step_ms.append(1e3 * (time.perf_counter() - s0))
+        self._publish_state(previous_step=k)
+        self._cycle_ms.append(1e3 * (time.perf_counter() - w0))
+
+    def _due(self, rate_name, previous_step):
+        rate = self._p(rate_name)
+        if rate <= 0:
+            return False
+        if previous_step is None:
+            return True
+        tick = lambda k: math.floor(k * self.sim.dt * rate + 1e-6)  # noqa: E731
+        return tick(self.sim.step_count) > tick(previous_step)
+
+    def _finite(self, what, a):
+        if np.all(np.isfinite(a)):
+            return True
+        self._fail(f"non-finite {what} at t = {self.sim.time:.6g} s")
+        return False
+
+    def _publish_state(self, previous_step=None, initial=False):
+        """/clock and every output due after the step from previous_step (None: all)."""
+        t, frame = self.sim.time, self._p("world_frame")
+        self.pub_clock.publish(convert.clock(t))
+        surface = [n for n in ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate")
+                   if self._due(n, previous_step)]
+        if surface:
+            x = self.sim.surface_positions()
+            if not self._finite("surface positions", x):
+                return
+            if "points_publish_rate" in surface:
+                self.pub_points.publish(self._points.message(t, frame, x))
+            if "mesh_publish_rate" in surface:
+                self.pub_mesh.publish(self._mesh.encode(x))
+            if "marker_publish_rate" in surface:
+                self.pub_marker.publish(self._marker.encode(t, frame, x))
+        if self._due("pose_publish_rate", previous_step):
+            poses = self.sim.domain_poses()
+            wrenches = {c: self.sim.collider_wrench(c) for c in self.colliders}
+            if not self._finite("domain poses", poses) or not all(
+                    self._finite(f"wrench on collider {c!r}", w) for c, w in wrenches.items()):
+                return
+            self.pub_poses.publish(convert.pose_array(t, frame, poses))
+            for msg in convert.domain_transforms(t, frame, self.domain_names, poses):
+                self.pub_transforms.publish(msg)
+            for c, w in wrenches.items():
+                self.pub_collider_wrench[c].publish(convert.wrench_stamped(t, frame, w))
+        contacts_of = getattr(self.sim, "contacts", None)
+        if callable(contacts_of):
+            contacts = np.asarray(contacts_of(), dtype=np.float64)
+            if len(contacts) and self._finite("contacts", contacts):
+                self.pub_contacts.publish(convert.contacts_cloud(t, frame, contacts))
+
+    def _publish_topology(self):
+        rest = np.asarray(self.sim.rest_positions())[self.surface_ids]
+        self.pub_topology.publish(convert.topology_mesh_bytes(rest, self.triangles))
+
+    def _fail(self, what):
+        self._stability, self._failures = "failed", self._failures + 1
+        self._last_failure = what
+        self.get_logger().error(f"{what}: nothing of it is published; resetting the simulation to t = 0 "
+                                f"(failure {self._failures})")
+        if not self._failing:
+            self._failing = True
+            try:
+                self._reset()
+            finally:
+                self._failing = False
+
+    def _reset(self):
+        self.sim.reset()
+        self._queue.clear()
+        self._held.clear()
+        self._window = (time.monotonic(), self.sim.time)
+        if self.sim.step_count == 0 and np.all(np.isfinite(self.sim.surface_positions())):
+            self._publish_state(initial=True)
+
+    # ------------------------------------------------------------------ services
+    def _srv_pause(self, request, response):
+        if not self._paused:
+            self._paused = True
+            self._step_timer.cancel()
+            self.get_logger().info(f"physics paused at t = {self.sim.time:.6g} s")
+        return response
+
+    def _srv_unpause(self, request, response):
+        if self._paused:
+            self._paused = False
+            self._window = (time.monotonic(), self.sim.time)
+            self._step_timer.reset()
+            self.get_logger().info(f"physics running from t = {self.sim.time:.6g} s")
+        return response
+
+    def _srv_reset(self, request, response):
+        self._stability, self._last_failure = "ok", ""
+        self._reset()
+        self.get_logger().info("simulation reset to t = 0")
+        return response
+
+    def _srv_step(self, request, response):
+        if not self._paused:
+            response.success = False
+            response.message = "physics is running: call ~/pause_physics first"
+            return response
+        self.advance()
+        response.success = True
+        response.message = f"t = {self.sim.time:.9f} s, step {self.sim.step_count}"
+        return response
+
+    def _srv_clear_forces(self, request, response):
+        held = sorted(self._held)
+        pending = sum(1 for i in self._queue if i.kind in _FORCE_INPUTS)
+        self.sim.clear_forces()
+        self._held.clear()
+        self._queue = [i for i in self._queue if i.kind not in _FORCE_INPUTS]
+        response.success = True
+        response.message = (f"cleared wrenches on [{', '.join(held)}], all point forces and "
+                            f"{pending} pending force inputs at t = {self.sim.time:.6g} s")
+        return response
+
+    # ------------------------------------------------------------------ diagnostics
+    def _on_diag_timer(self):
+        self._trap_unknown_colliders()
+        self.pub_diag.publish(self.diagnostics())
+
+    def diagnostics(self):
+        now = time.monotonic()
+        wall0, sim0 = self._window
+        rtf = 0.0 if self._paused or now <= wall0 else (self.sim.time - sim0) / (now - wall0)
+        self._window = (now, self.sim.time)
+        steps, cycles = np.array(self._step_ms), np.array(self._cycle_ms)
+        self._step_ms.clear()
+        self._cycle_ms.clear()
+        energy = self.sim.energy()
+        if not all(math.isfinite(v) for v in energy.values()):
+            self._fail("non-finite energy")
+            energy = self.sim.energy()
+        stats = self.sim.stats()
+        stability = stats.get("stability", self._stability) if self._stability == "ok" else self._stability
+        target = self._p("real_time_factor")
+        values = {
+            "state": "paused" if self._paused else "running",
+            "sim_time": self.sim.time,
+            "steps": self.sim.step_count,
+            "physics_dt": self.sim.dt,
+            "step_ms_median": float(np.median(steps)) if len(steps) else 0.0,
+            "step_ms_max": float(steps.max()) if len(steps) else 0.0,
+            "cycle_ms_median": float(np.median(cycles)) if len(cycles) else 0.0,
+            "cycle_ms_max": float(cycles.max()) if len(cycles) else 0.0,
+            "steps_in_window": len(steps),
+            "real_time_factor": rtf,
+            "real_time_factor_target": target,
+            "energy_total": energy["total"],
+            "energy_kinetic": energy["kinetic"],
+            "energy_elastic": energy["elastic"],
+            "stability": stability,
+            "stability_failures": self._failures,
+            "last_failure": self._last_failure,
+            "dofs": stats.get("dofs", 0),
+            "domains": len(self.domain_names),
+            "surface_vertices": len(self.surface_ids),
+            "held_wrenches": ",".join(sorted(self._held)),
+            "inputs_received": self._counts["received"],
+            "inputs_applied": self._counts["applied"],
+            "inputs_late": self._counts["late"],
+            "inputs_pending": len(self._queue),
+            "rejected_total": sum(self._rejected.values()),
+        }
+        values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
+        if stability == "failed":
+            level, message = "error", f"failed: {self._last_failure}"
+        elif not self._paused and target > 0 and len(steps) and rtf < 0.9 * target:
+            level, message = "warn", f"running slower than real_time_factor {target:g}: {rtf:.3g}"
+        else:
+            level, message = "ok", values["state"]
+        return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME, f"scene:{self.sim.scene.name}",
+                                   level, message, values)
+
+    def close(self):
+        self.get_logger().info(f"shutting down at t = {self.sim.time:.6g} s after {self.sim.step_count} steps; "
+                               f"rejected inputs: {sum(self._rejected.values())}")
+
+
+# ---------------------------------------------------------------------- main
+class _Shutdown(BaseException):
+    """SIGINT or SIGTERM before the node spins (during the model build)."""
+
+
+def _usage():
+    lines = ["usage: mdss_node [--ros-args] [--params-file FILE] [-p NAME:=VALUE ...]", "", "parameters:"]
+    for name, (default, text, runtime) in PARAMETERS.items():
+        lines.append(f"  {name} (default {default!r}{'' if runtime else ', read-only'}): {text}")
+    return "\n".join(lines)
+
+
+def _ros_args(argv):
+    """argv with --ros-args inserted before the first -p / --params-file if missing."""
+    argv = list(argv)
+    if "--ros-args" not in argv:
+        for i, a in enumerate(argv):
+            if a in ("-p", "--param", "--params-file", "-r", "--remap") and i > 0:
+                return argv[:i] + ["--ros-args"] + argv[i:]
+    return argv
+
+
+def _spin(node, state):
+    """Spin until SIGINT/SIGTERM; a callback's unexpected error is logged, not fatal."""
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    while not state["stop"] and rclpy.ok():
+        try:
+            executor.spin_once(timeout_sec=0.2)
+        except ExternalShutdownException:
+            break
+        except Exception:  # noqa: BLE001 - the node never crashes on one message
+            import traceback
+            node.get_logger().error(f"callback failed (the node goes on):\n{traceback.format_exc()}")
+    executor.remove_node(node)
+
+
+def main(args=None):
+    """Start the node; exit code 0 on SIGINT/SIGTERM, 2 if the scene or parameters are bad."""
+    argv = _ros_args(sys.argv if args is None else [sys.argv[0]] + list(args))
+    if any(a in ("-h", "--help") for a in argv[1:argv.index("--ros-args") if "--ros-args" in argv else None]):
+        print(_usage())
+        return 0
+    state = {"starting": True, "stop": False}
+
+    def on_signal(signum, frame):
+        state["stop"] = True
+        if state["starting"]:
+            raise _Shutdown(signal.Signals(signum).name)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node, code = None, 0
+    try:
+        try:
+            node = MdssNode()
+        except StartupError as err:
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {err}")
+            code = 2
+        state["starting"] = False
+        if node is not None:
+            _spin(node, state)
+            node.close()
+    except (_Shutdown, KeyboardInterrupt):
+        rclpy.logging.get_logger(NODE_NAME).info("interrupted while starting; exiting")
+    finally:
+        state["starting"] = False
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for s, h in old.items():
+            signal.signal(s, h)
+        sys.stdout.flush()
+        sys.stderr.flush()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""The node's rules in-process (no other processes): when inputs take effect, output
+grids, the non-finite guard, wrench timeouts, parameter parsing."""
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.ros import convert
+from mdss_ros.timeline import TimelinePlayer
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
+from launch_testing import DomainLease  # noqa: E402
+
+pytestmark = pytest.mark.ros       # an rclpy node in this process (its own DDS domain)
+
+OVERRIDES = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 6}
+
+
+@pytest.fixture(scope="module")
+def node():
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.parameter import Parameter
+    from mdss_ros.node import MdssNode
+
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    lease = DomainLease()
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+    params = [Parameter("scene", value="cantilever"),
+              Parameter("scene_overrides", value=[f"{k}={v}" for k, v in OVERRIDES.items()]),
+              Parameter("start_paused", value=True), Parameter("real_time_factor", value=0),
+              Parameter("points_publish_rate", value=30.0)]
+    n = MdssNode(context=ctx, parameter_overrides=params)
+    sent = {}
+    for name in ("pub_points", "pub_poses", "pub_mesh", "pub_marker", "pub_clock"):
+        pub = getattr(n, name)
+        sent[name] = []
+        pub.publish = (lambda msg, name=name: sent[name].append(msg))
+    n.sent = sent
+    yield n
+    n.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+    lease.release()
+
+
+def _clear(node):
+    node._srv_reset(None, None)
+    for v in node.sent.values():
+        v.clear()
+
+
+def _wrench_msg(handle, force, t):
+    return convert.wrench_stamped(t, handle, list(force) + [0, 0, 0])
+
+
+def test_stamped_and_unstamped_inputs_take_effect_like_the_timeline_player(node):
+    _clear(node)
+    node._on_wrench(_wrench_msg("tip", (0, 0, -20), 0.1))      # stamped: at the step starting at 0.1 s
+    node._on_wrench(_wrench_msg("tip", (0, 0, 0), 0.3))
+    for _ in range(20):
+        node.advance()
+    node._on_wrench(_wrench_msg("tip", (0, 0, -5), 0.0))        # unstamped: the next step (k = 20)
+    for _ in range(25):
+        node.advance()
+    sim = Simulator(load_scene("cantilever", OVERRIDES))
+    player = TimelinePlayer([{"t": 0.1, "topic": "wrench", "frame_id": "tip", "force": [0, 0, -20]},
+                             {"t": 0.3, "topic": "wrench", "frame_id": "tip", "force": [0, 0, 0]},
+                             {"t": 20 * sim.dt, "topic": "wrench", "frame_id": "tip", "force": [0, 0, -5]}])
+    for _ in range(45):
+        player.apply_due(sim)
+        sim.step()
+    np.testing.assert_array_equal(node.sim.surface_positions(), sim.surface_positions())
+    assert node._counts["applied"] >= 3 and not node._queue
+
+
+def test_outputs_follow_their_own_grid_of_sim_time(node):
+    _clear(node)
+    node.set_parameters([__import__("rclpy").parameter.Parameter("mesh_publish_rate", value=0.0)])
+    for _ in range(9):
+        node.advance()
+    stamps = [round(convert.seconds(m.header.stamp) * 90) for m in node.sent["pub_points"]]
+    assert stamps == [3, 6, 9]                                   # 30 Hz of 90 Hz steps
+    assert len(node.sent["pub_poses"]) == 9 and len(node.sent["pub_clock"]) == 9
+    assert not node.sent["pub_mesh"]
+
+
+def test_non_finite_state_is_never_published_and_resets(node, monkeypatch):
+    _clear(node)
+    for _ in range(2):
+        node.advance()
+    monkeypatch.setattr(node.sim, "surface_positions", lambda: np.full((170, 3), np.nan))
+    node.advance()                                               # step 3 would publish points: NaN
+    monkeypatch.undo()
+    assert node.sim.time == 0.0 and node._stability == "failed"
+    for msg in node.sent["pub_points"]:
+        rec = np.frombuffer(bytes(msg.data), dtype=convert.SURFACE_POINT_DTYPE)
+        assert np.all(np.isfinite(rec["x"]))
+    values = {kv.key: kv.value for kv in node.diagnostics().status[0].values}
+    assert values["stability"] == "failed" and values["stability_failures"] == "1"
+    # a step that raises is a failure too, and the node goes on
+    monkeypatch.setattr(node.sim.model, "step", lambda *a, **k: (_ for _ in ()).throw(np.linalg.LinAlgError("x")))
+    node.advance()
+    monkeypatch.undo()
+    assert node._failures == 2 and node.sim.time == 0.0
+    node.advance()
+    assert node.sim.step_count == 1
+    node._srv_reset(None, None)
+    assert node._stability == "ok"
+
+
+def test_wrench_timeout_clears_stale_wrenches(node):
+    from rclpy.parameter import Parameter
+    _clear(node)
+    node.set_parameters([Parameter("wrench_timeout_s", value=0.05)])
+    try:
+        node._on_wrench(_wrench_msg("tip", (0, 0, -20), 0.0))
+        node.advance()
+        assert "tip" in node._held
+        for _ in range(5):
+            node.advance()
+        assert "tip" not in node._held and not node.sim._wrenches
+    finally:
+        node.set_parameters([Parameter("wrench_timeout_s", value=0.0)])
+
+
+def test_parse_overrides_and_ros_args():
+    from mdss_ros.node import _ros_args, parse_overrides
+    assert parse_overrides("") == {}
+    assert parse_overrides(["model.modes=6", "body.mesh.cell=0.05"]) == {"model.modes": 6, "body.mesh.cell": 0.05}
+    assert parse_overrides('{"model.modes": 6}') == {"model.modes": 6}
+    assert parse_overrides("model.modes=6, model.kind=full") == {"model.modes": 6, "model.kind": "full"}
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        parse_overrides(["model.modes"])
+    assert _ros_args(["mdss_node", "-p", "scene:=x"]) == ["mdss_node", "--ros-args", "-p", "scene:=x"]
+    assert _ros_args(["mdss_node", "--ros-args", "-p", "a:=1"]) == ["mdss_node", "--ros-args", "-p", "a:=1"]
