@@ -24,16 +24,21 @@ from pathlib import Path
 import numpy as np
 
 MAGIC = "mdss_ros precompute v1"
-_CODE_FILES = ["reduced/partition.py", "reduced/modal_basis.py", "reduced/domains.py", "reduced/training.py",
-               "reduced/cubature.py", "reduced/sampled_forces.py", "fem/materials.py", "fem/material_kernels.py",
-               "fem/elements.py", "precompute.py"]
+# Source files each stage's result depends on: editing one rebuilds that stage (and the
+# stages after it, whose keys include its key), not the ones before.
+STAGE_CODE = {
+    "bases": ["reduced/partition.py", "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py",
+              "fem/material_kernels.py", "fem/elements.py", "fem/assembly.py", "precompute.py"],
+    "cubature": ["reduced/training.py", "reduced/cubature.py", "reduced/sampled_forces.py",
+                 "fem/backward_euler.py", "precompute.py"],
+}
 
 
-def code_hash():
-    """SHA-256 (16 hex) of the precompute's source files."""
+def code_hash(stage="bases"):
+    """SHA-256 (16 hex) of the source files a stage of the precompute depends on."""
     h = hashlib.sha256()
     root = Path(__file__).resolve().parent
-    for rel in _CODE_FILES:
+    for rel in STAGE_CODE[stage]:
         p = root / rel
         h.update(rel.encode())
         h.update(p.read_bytes() if p.exists() else b"missing")

@@ -109,15 +109,32 @@ def relative_error(A, b, rows_per_pose, elements, weights):
     return float(np.mean(err / np.maximum(ref, 1e-300)))
 
 
-def domain_force_columns(dom, Q):
-    """Per-element reduced forces of a subspace domain at poses Q (T, r): A (T r, m), b (T r,)."""
+def domain_force_columns(dom, Q, max_candidates=40000, seed=0, chunk=20000):
+    """Per-element reduced forces of a subspace domain at poses Q (T, r).
+
+    Returns (A (T r, c), b (T r,), candidates (c,)): columns for at most max_candidates
+    elements (a random subset when the domain has more, which keeps memory bounded for
+    one-domain models of large meshes), and b the force of ALL elements, accumulated
+    in chunks."""
     from .sampled_forces import contributions, sample_jacobians
     fm = dom.forces
-    G = sample_jacobians(dom.U3, fm.tets, fm.geom.grads)
-    out = np.empty((len(Q), dom.r, len(fm.tets)))
-    contributions(G, fm.geom.volume, np.ascontiguousarray(Q), fm.material.kind_id, fm.material.params, out)
-    A = out.reshape(len(Q) * dom.r, len(fm.tets))
-    return A, A.sum(axis=1)
+    m = len(fm.tets)
+    Qc = np.ascontiguousarray(Q)
+    cand = np.arange(m) if m <= max_candidates else np.sort(
+        np.random.default_rng(seed).choice(m, size=max_candidates, replace=False))
+    b = np.zeros(len(Q) * dom.r)
+    cols = []
+    is_cand = np.zeros(m, dtype=bool)
+    is_cand[cand] = True
+    for lo in range(0, m, chunk):
+        ids = np.arange(lo, min(m, lo + chunk))
+        G = sample_jacobians(dom.U3, fm.tets[ids], fm.geom.grads[ids])
+        out = np.empty((len(Q), dom.r, len(ids)))
+        contributions(G, fm.geom.volume[ids], Qc, fm.material.kind_id, fm.material.params, out)
+        A_chunk = out.reshape(len(Q) * dom.r, len(ids))
+        b += A_chunk.sum(axis=1)
+        cols.append(A_chunk[:, is_cand[ids]])
+    return np.concatenate(cols, axis=1), b, cand
 
 
 def build_domain_cubature(dom, Q, samples, tolerance=0.0, seed=0, progress=None):
@@ -127,7 +144,7 @@ def build_domain_cubature(dom, Q, samples, tolerance=0.0, seed=0, progress=None)
     """
     from .sampled_forces import SampledDomainForces
     train, held = split_poses(len(Q), seed=seed)
-    A, b = domain_force_columns(dom, Q)
+    A, b, cand = domain_force_columns(dom, Q, seed=seed)
     rows = dom.r
     sel = (np.repeat(train * rows, rows) + np.tile(np.arange(rows), len(train)))
     A_t, b_t = normalise_poses(A[sel], b[sel], rows)
@@ -139,7 +156,8 @@ def build_domain_cubature(dom, Q, samples, tolerance=0.0, seed=0, progress=None)
         info["held_out_error"] = relative_error(A[hsel], b[hsel], rows, cub.elements, cub.weights)
     fm = dom.forces
     forces = SampledDomainForces.build(dom.U3, fm.tets, fm.geom.grads, fm.geom.volume, fm.material,
-                                       cub.elements, cub.weights)
+                                       cand[cub.elements], cub.weights)
+    info["candidates"] = int(len(cand))
     return forces, info
 
 

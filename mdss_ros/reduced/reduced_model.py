@@ -82,7 +82,7 @@ class ReducedModel:
         # Partition and bases, from the cache when their inputs are unchanged ----------
         self.cache = cache if cache is not None else PrecomputeCache()
         mat = body.material
-        self.bases_key = cache_key("bases", code_hash(), X, tets, mat.kind_id, mat.params, mat.density,
+        self.bases_key = cache_key("bases", code_hash("bases"), X, tets, mat.kind_id, mat.params, mat.density,
                                    body.pinned, cfg.get("domains"), cfg.get("full_space_domains"),
                                    cfg["modes"], cfg.get("basis") or {})
         hit = self.cache.load("bases", self.bases_key)
@@ -207,7 +207,7 @@ class ReducedModel:
             if interface != "exact":
                 raise SceneError("model.cubature.interface: set model.cubature.samples > 0 as well")
             return {"samples": 0}
-        key = cache_key("cubature", self.bases_key, code_hash(), ccfg, self.dt, self.alpha, self.beta,
+        key = cache_key("cubature", self.bases_key, code_hash("cubature"), ccfg, self.dt, self.alpha, self.beta,
                         self.cfg.get("coupling") or {})
         hit = self.cache.load("cubature", key)
         if hit is not None:
