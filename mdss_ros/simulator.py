@@ -47,14 +47,23 @@ class Simulator:
         self.model = build_model(scene, self.body, progress, cache)
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
-        self._collider_names = set(scene["colliders"])
+        self._make_colliders()
+        self._collider_names = set(self.colliders)
         if hasattr(self.model, "watch"):
             self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
         self.reset()
 
     # ----------------------------------------------------------------- state
+    def _make_colliders(self):
+        from .contact.colliders import make_collider
+        try:
+            self.colliders = {name: make_collider(name, spec) for name, spec in self.scene["colliders"].items()}
+        except SceneError as err:
+            raise SceneError(f"{self.scene.source}: {err}") from err
+
     def reset(self):
-        """Back to the rest state at t = 0 with no inputs."""
+        """Back to the rest state at t = 0 with no inputs; colliders at their scene poses."""
+        self._make_colliders()
         self.model.reset()
         iv = self.scene["initial_velocity"]
         if any(iv["linear"]) or any(iv["angular"]):
@@ -63,7 +72,6 @@ class Simulator:
         self.step_count = 0
         self._wrenches = {}
         self._point_forces = []   # (tri vertex ids (3,), barycentric (3,), force (3,), t_end or None)
-        self._collider_poses = {}
         self._stats = {}
 
     @property
@@ -101,9 +109,10 @@ class Simulator:
         self._point_forces.clear()
 
     def set_collider_pose(self, name, position, orientation=(0.0, 0.0, 0.0, 1.0)):
+        """Pose a kinematic collider (world frame; orientation x y z w, normalised here)."""
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
-        self._collider_poses[name] = (_finite3(position, "position"), np.asarray(orientation, dtype=np.float64))
+        self.colliders[name].set_pose(_finite3(position, "position"), orientation)
 
     def external_forces(self):
         """Per-vertex external force (n_verts, 3) for the coming step, gravity included."""

@@ -1,0 +1,123 @@
+"""Kinematic rigid colliders: geometry, pose and signed distance.
+
+A collider is declared in the scene's `colliders` map and posed by the timeline, the API
+(`Simulator.set_collider_pose`) or the ROS topic `~/colliders/<name>/pose`:
+
+    colliders:
+      ball:  {shape: sphere, radius: 0.05, position: [0, 0, 0.3]}
+      rod:   {shape: capsule, radius: 0.02, half_height: 0.1, orientation: [0, 0, 0, 1]}
+      block: {shape: box, half_extents: [0.1, 0.1, 0.05]}
+      floor: {shape: plane}                      # the local z = 0 plane, normal +z
+
+`signed_distance(points)` returns phi (n,) (negative inside the collider) and the unit
+outward normal of the collider at the closest surface point (n, 3), both in the world
+frame; phi is differentiable with d phi / d x = normal away from the medial set.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import SceneError
+from ..rotations import matrix_from_quat
+
+SHAPES = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "box": ("half_extents",), "plane": ()}
+
+
+@dataclass
+class Collider:
+    """name; shape; size parameters; pose (position (3,), orientation x y z w)."""
+
+    name: str
+    shape: str
+    radius: float = 0.0
+    half_height: float = 0.0
+    half_extents: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+
+    def set_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0)):
+        q = np.asarray(orientation, dtype=np.float64)
+        n = np.linalg.norm(q)
+        if not np.all(np.isfinite(q)) or n < 1e-9:
+            raise ValueError(f"collider {self.name!r}: orientation must be a non-zero finite quaternion, got {orientation!r}")
+        self.position = np.asarray(position, dtype=np.float64).copy()
+        self.orientation = q / n
+
+    @property
+    def rotation(self):
+        return matrix_from_quat(self.orientation)
+
+    def signed_distance(self, points):
+        """phi (n,) and outward normals (n, 3) at world points (n, 3)."""
+        R = self.rotation
+        p = (np.asarray(points, dtype=np.float64) - self.position) @ R        # local coordinates
+        if self.shape == "sphere":
+            phi, n = _sphere(p, self.radius)
+        elif self.shape == "capsule":
+            axial = np.clip(p[:, 2], -self.half_height, self.half_height)
+            q = p.copy()
+            q[:, 2] -= axial
+            phi, n = _sphere(q, self.radius)
+        elif self.shape == "box":
+            phi, n = _box(p, self.half_extents)
+        elif self.shape == "plane":
+            phi = p[:, 2].copy()
+            n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+        else:                                                              # validated on creation
+            raise ValueError(self.shape)
+        return phi, n @ R.T
+
+
+def _sphere(p, radius):
+    d = np.linalg.norm(p, axis=1)
+    safe = d > 1e-12
+    n = np.zeros_like(p)
+    n[safe] = p[safe] / d[safe, None]
+    n[~safe] = (0.0, 0.0, 1.0)                 # the centre: any direction is a normal
+    return d - radius, n
+
+
+def _box(p, h):
+    q = np.abs(p) - h
+    outside = np.maximum(q, 0.0)
+    d_out = np.linalg.norm(outside, axis=1)
+    inside = d_out == 0.0
+    phi = np.where(inside, q.max(axis=1), d_out)
+    n = np.zeros_like(p)
+    out = ~inside
+    n[out] = np.sign(p[out]) * outside[out] / d_out[out, None]
+    # Inside: push out through the nearest face.
+    axis = np.argmax(q[inside], axis=1)
+    rows = np.flatnonzero(inside)
+    n[rows, axis] = np.where(p[rows, axis] >= 0.0, 1.0, -1.0)
+    return phi, n
+
+
+def make_collider(name, spec):
+    """Collider from a scene's colliders.<name> mapping; SceneError names the bad key."""
+    where = f"colliders.{name}"
+    if not isinstance(spec, dict):
+        raise SceneError(f"{where}: expected a mapping with a shape, got {spec!r}")
+    shape = spec.get("shape")
+    if shape not in SHAPES:
+        raise SceneError(f"{where}.shape: {shape!r} is not one of {', '.join(SHAPES)}")
+    allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach"}
+    unknown = sorted(set(spec) - allowed)
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {unknown} for a {shape} (allowed: {sorted(allowed)})")
+    c = Collider(name=name, shape=shape)
+    for key in SHAPES[shape]:
+        if key not in spec:
+            raise SceneError(f"{where}.{key}: required for a {shape}")
+        value = np.asarray(spec[key], dtype=np.float64)
+        if not np.all(np.isfinite(value)) or np.any(value <= 0) or (key == "half_extents" and value.shape != (3,)):
+            raise SceneError(f"{where}.{key}: expected positive {'3 numbers' if key == 'half_extents' else 'number'}, "
+                             f"got {spec[key]!r}")
+        setattr(c, key, value if key == "half_extents" else float(value))
+    try:
+        c.set_pose(spec.get("position", (0.0, 0.0, 0.0)), spec.get("orientation", (0.0, 0.0, 0.0, 1.0)))
+    except ValueError as err:
+        raise SceneError(f"{where}: {err}") from err
+    if np.asarray(c.position).shape != (3,):
+        raise SceneError(f"{where}.position: expected 3 numbers, got {spec.get('position')!r}")
+    return c
