@@ -135,7 +135,10 @@ class Simulator:
             t0 = time.perf_counter()
             f_app = self.applied_forces()
             t1 = time.perf_counter()
-            model_stats = self.model.step(f_app, self.gravity)
+            if self.colliders and self.model.kind == "full":
+                model_stats = self.model.step(f_app, self.gravity, contact=self._contact_spec())
+            else:
+                model_stats = self.model.step(f_app, self.gravity)
             t2 = time.perf_counter()
             self.time = (self.step_count + 1) * self.dt
             self.step_count += 1
@@ -176,10 +179,33 @@ class Simulator:
         return {"kinetic": kinetic, "elastic": elastic, "gravity": gravity,
                 "total": kinetic + elastic + gravity}
 
+    def _contact_spec(self):
+        if not hasattr(self, "_contact_margin"):
+            tri = self.body.surface.triangles
+            pos = self.rest_positions()[self.body.surface.vertex_ids]
+            edges = np.linalg.norm(pos[tri[:, [1, 2, 0]]] - pos[tri], axis=2)
+            # Vertices within a surface edge of a collider (predicted) become candidates.
+            self._contact_margin = float(edges.mean())
+        return {"colliders": list(self.colliders.values()), "vertices": self.body.surface.vertex_ids,
+                "margin": self._contact_margin}
+
+    def contacts(self):
+        """Active contacts of the last step: (k, 10) rows x y z nx ny nz depth fx fy fz
+        (point on the body, collider normal, penetration depth, force on the body)."""
+        c = getattr(self.model, "contact", None)
+        if not c or len(c["vertices"]) == 0:
+            return np.zeros((0, 10))
+        return np.hstack([c["points"], c["normals"], c["depth"][:, None], c["forces"]])
+
     def collider_wrench(self, name):
+        """Reaction (6,) force and torque (about the collider's position) on a collider."""
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
-        return np.zeros(6)
+        from .contact.unilateral import contact_wrenches
+        c = getattr(self.model, "contact", None)
+        if not c or len(c["vertices"]) == 0:
+            return np.zeros(6)
+        return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])[name]
 
     def stats(self):
         return dict(self._stats, kind=self.model.kind, dofs=self.model.n_dofs,

@@ -57,9 +57,34 @@ class BackwardEuler:
             elastic = m.energy(x0 + self.dt * m.expand(v))
         return 0.5 * dv @ (m.M @ dv) + 0.5 * self.dt * v @ (D @ v) + elastic - self.dt * f_ext_free @ v
 
-    def step(self, x, v, f_ext):
-        """Advance one step. x, v, f_ext: (n_verts, 3). Returns (x', v')."""
+    def _contact_rows(self, contact, x, v):
+        """Constraint data of candidate contacts: (vertices, C (m, n_free) dense, phi, normals, which)."""
+        from ..contact.unilateral import find_contacts
+        m, dt = self.model, self.dt
+        ids = contact["vertices"]
+        verts, which, phi, normals = find_contacts(contact["colliders"], x[ids], x[ids] + dt * v[ids],
+                                                   contact["margin"])
+        verts = ids[verts]
+        dofs = m.pattern.free_dof[3 * verts[:, None] + np.arange(3)]          # (k, 3), -1 if pinned
+        keep = (dofs >= 0).all(axis=1)
+        verts, which, phi, normals, dofs = verts[keep], which[keep], phi[keep], normals[keep], dofs[keep]
+        C = np.zeros((len(verts), m.n_free))
+        np.put_along_axis(C, dofs, dt * normals, axis=1)
+        return verts, C, phi, normals, which
+
+    def step(self, x, v, f_ext, contact=None):
+        """Advance one step. x, v, f_ext: (n_verts, 3). Returns (x', v').
+
+        contact: None or {"colliders": [...], "vertices": candidate ids, "margin": m};
+        the contact forces found are left in self.contact (see mdss_ros.contact.unilateral).
+        """
+        from ..contact.unilateral import solve_lcp
         m, dt, s = self.model, self.dt, self.settings
+        self.contact = None
+        rows = self._contact_rows(contact, x, v) if contact else None
+        if rows is not None and len(rows[0]) == 0:
+            rows = None
+        lam = np.zeros(0 if rows is None else len(rows[0]))
         t_asm = t_fac = t_sol = 0.0
         v0 = m.free(v)
         f_ext_free = m.free(f_ext)
@@ -80,7 +105,7 @@ class BackwardEuler:
                 D = s.alpha * m.M + s.beta * K
             r = m.M @ (vk - v0) + dt * (D @ vk + m.free(f_int) - f_ext_free)
             t_asm += time.perf_counter() - t0
-            r_norm = float(np.linalg.norm(r))
+            r_norm = float(np.linalg.norm(r - (rows[1].T @ lam if rows is not None else 0.0)))
             if r0_norm is None:
                 r0_norm = r_norm
             if r_norm <= s.tolerance * max(r0_norm, 1e-300) and k > 0:
@@ -102,11 +127,18 @@ class BackwardEuler:
                 self.solver.factor(A)
             t1 = time.perf_counter()
             dv = self.solver.solve(-r)
+            if rows is not None:
+                # Contact: A dv = -r + C^T lam with C (vk + dv) + phi >= 0, lam >= 0.
+                _, C, phi, _, _ = rows
+                Y = self.solver.solve(np.ascontiguousarray(C.T))
+                Y = Y.reshape(len(dv), -1)
+                lam, lcp = solve_lcp(C @ Y, C @ (vk + dv) + phi)
+                dv = dv + Y @ lam
             t_fac += t1 - t0
             t_sol += time.perf_counter() - t1
             iterations += 1
             step_len = 1.0
-            if s.line_search and s.max_iterations > 1:
+            if s.line_search and s.max_iterations > 1 and rows is None:
                 phi0 = self._potential(vk, v0, x, D, f_ext_free, elastic=e_k)
                 slope = float(r @ dv)
                 while step_len > 1e-4:
@@ -120,6 +152,17 @@ class BackwardEuler:
                 break
         v_new = m.expand(vk)
         x_new = x + dt * v_new
+        if rows is not None:
+            verts, _, _, normals, which = rows
+            depth = np.zeros(len(verts))
+            for c_idx, col in enumerate(contact["colliders"]):
+                sel = which == c_idx
+                if sel.any():
+                    depth[sel] = np.maximum(-col.signed_distance(x_new[verts[sel]])[0], 0.0)
+            active = lam > 0
+            self.contact = {"vertices": verts[active], "normals": normals[active], "which": which[active],
+                            "forces": lam[active, None] * normals[active], "points": x_new[verts[active]],
+                            "depth": depth[active], "candidates": int(len(verts))}
         self.stats = {
             "newton_iterations": iterations,
             "converged": bool(converged or s.max_iterations == 1),

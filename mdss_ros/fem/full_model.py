@@ -29,6 +29,7 @@ class FullSpaceModel:
     def reset(self):
         self.x = self.body.vertices.copy()
         self.v = np.zeros_like(self.x)
+        self.contact = None
 
     @property
     def dt(self):
@@ -38,11 +39,13 @@ class FullSpaceModel:
     def n_dofs(self):
         return self.force_model.n_free
 
-    def step(self, f_ext, gravity=None):
-        """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,)."""
+    def step(self, f_ext, gravity=None, contact=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,);
+        contact: see BackwardEuler.step (colliders at their end-of-step poses)."""
         if gravity is not None:
             f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
-        self.x, self.v = self.integrator.step(self.x, self.v, f_ext)
+        self.x, self.v = self.integrator.step(self.x, self.v, f_ext, contact)
+        self.contact = self.integrator.contact
         return self.integrator.stats
 
     def vertex_positions(self):

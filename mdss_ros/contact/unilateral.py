@@ -1,0 +1,93 @@
+"""Frictionless unilateral contact as constraints of the linearised implicit step.
+
+Each step solves A v' = b (backward Euler, Newton). A surface vertex l near a collider
+gets the linearised non-penetration constraint at the end of the step
+
+    phi_l + dt n_l . (J_l v') >= 0          (phi, n at the collider's end-of-step pose)
+
+with multipliers lambda_l >= 0 (the normal contact forces, newtons) and complementarity
+lambda_l (phi_l + dt n_l . J_l v') = 0:
+
+    A v' = b + C^T lambda,   C = dt [n_l^T J_l],   C v' + phi >= 0,   lambda >= 0.
+
+Eliminating v' = v0 + A^-1 C^T lambda (v0 = A^-1 b) leaves an LCP in the few contact
+unknowns: w = S lambda + q >= 0, S = C A^-1 C^T (symmetric positive definite when the
+contact rows are independent), q = C v0 + phi. It is solved exactly by an active-set
+method, so the answer is the unilateral constraint itself, not a penalty whose result
+depends on a tuned stiffness.
+"""
+import numpy as np
+import scipy.linalg as sla
+
+
+def solve_lcp(S, q, max_iterations=None, tol=1e-12):
+    """lambda >= 0 with w = S lambda + q >= 0 and lambda . w = 0, for S (m, m) SPD.
+
+    Active-set (block principal pivoting, one index at a time); returns (lambda, info).
+    """
+    m = len(q)
+    lam = np.zeros(m)
+    if m == 0:
+        return lam, {"iterations": 0, "active": 0}
+    # Start from the constraints the unconstrained step violates: usually the final set.
+    active = q < 0.0
+    scale = max(float(np.abs(q).max()), 1e-300)
+    max_iterations = max_iterations or 10 * m + 10
+    for it in range(max_iterations):
+        lam[:] = 0.0
+        if active.any():
+            idx = np.flatnonzero(active)
+            Sa = S[np.ix_(idx, idx)]
+            try:
+                lam[idx] = sla.solve(Sa, -q[idx], assume_a="pos", check_finite=False)
+            except (np.linalg.LinAlgError, ValueError):
+                lam[idx] = np.linalg.lstsq(Sa, -q[idx], rcond=None)[0]
+        neg = active & (lam < -tol * scale)
+        if neg.any():
+            # Drop the most negative multiplier (a contact that pulls).
+            k = np.flatnonzero(neg)[np.argmin(lam[neg])]
+            active[k] = False
+            continue
+        w = S @ lam + q
+        viol = (~active) & (w < -tol * scale)
+        if not viol.any():
+            return np.maximum(lam, 0.0), {"iterations": it + 1, "active": int(active.sum())}
+        k = np.flatnonzero(viol)[np.argmin(w[viol])]
+        active[k] = True
+    return np.maximum(lam, 0.0), {"iterations": max_iterations, "active": int(active.sum()), "unconverged": True}
+
+
+def find_contacts(colliders, x, x_pred, margin):
+    """Candidate contacts: (vertex rows (k,), collider index (k,), phi (k,), normals (k, 3)).
+
+    x (S, 3) current and x_pred (S, 3) predicted positions of candidate vertices; a vertex
+    is a candidate for a collider when its predicted signed distance is below margin.
+    Normals come from the current positions, so a vertex that a fast collider would carry
+    past the collider's centre is still pushed out on the side it came from.
+    """
+    rows, which, phis, normals = [], [], [], []
+    for c_idx, col in enumerate(colliders):
+        phi_pred, _ = col.signed_distance(x_pred)
+        near = np.flatnonzero(phi_pred < margin)
+        if near.size == 0:
+            continue
+        phi_now, n_now = col.signed_distance(x[near])
+        rows.append(near)
+        which.append(np.full(near.size, c_idx))
+        phis.append(phi_now)
+        normals.append(n_now)
+    if not rows:
+        return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    return np.concatenate(rows), np.concatenate(which), np.concatenate(phis), np.concatenate(normals)
+
+
+def contact_wrenches(colliders, points, forces, which):
+    """Reaction wrench (6,) on each collider: minus the sum of the contact forces on the
+    body, torque about the collider's position. Returns {name: (6,)}."""
+    out = {}
+    for c_idx, col in enumerate(colliders):
+        sel = which == c_idx
+        f = -forces[sel]
+        tau = np.cross(points[sel] - col.position, f).sum(0) if sel.any() else np.zeros(3)
+        out[col.name] = np.concatenate([f.sum(0), tau])
+    return out

@@ -1,0 +1,74 @@
+"""Frictionless unilateral contact: LCP, weight balance, no penetration, clean release."""
+import itertools
+
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator
+from mdss_ros.contact.unilateral import solve_lcp
+
+
+def test_lcp_matches_brute_force_enumeration():
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        m = 5
+        B = rng.normal(size=(m, m))
+        S = B @ B.T + 0.1 * np.eye(m)
+        q = rng.normal(size=m)
+        lam, info = solve_lcp(S, q)
+        w = S @ lam + q
+        assert np.all(lam >= 0) and np.all(w >= -1e-10) and abs(lam @ w) < 1e-9
+        # The solution of an LCP with SPD S is unique: compare with enumeration.
+        for active in itertools.product([0, 1], repeat=m):
+            idx = np.flatnonzero(active)
+            x = np.zeros(m)
+            if idx.size:
+                x[idx] = np.linalg.solve(S[np.ix_(idx, idx)], -q[idx])
+            if np.all(x >= -1e-12) and np.all(S @ x + q >= -1e-10):
+                np.testing.assert_allclose(lam, np.maximum(x, 0), atol=1e-9)
+
+
+def _block_scene(colliders, **model):
+    return {"name": "block",
+            "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.025, "origin": [-0.1, -0.1, 0.0]},
+                     "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000},
+                     "damping": {"alpha": 5.0, "beta": 0.0}},
+            "colliders": colliders,
+            "model": {"kind": "full", "integrator": {"dt": 0.01, "newton_iterations": 2}, **model}}
+
+
+def test_block_on_floor_reaction_equals_weight_without_penetration():
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"}}))
+    weight = sim.model.vertex_mass.sum() * 9.81
+    sim.step(150)
+    wrench = sim.collider_wrench("floor")
+    assert abs(-wrench[2] - weight) < 0.01 * weight
+    assert np.abs(wrench[:2]).max() < 1e-9 * weight
+    phi = sim.colliders["floor"].signed_distance(sim.vertex_positions())[0]
+    assert phi.min() > -1e-9
+    c = sim.contacts()
+    assert c.shape[1] == 10 and len(c) > 0 and np.all(c[:, 9] > 0)
+
+
+def test_sphere_pressed_then_withdrawn_releases_cleanly():
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"},
+                                  "ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.2]}}))
+    sim.step(50)                                        # settle on the floor
+    top = 0.1
+    for k in range(40):                                 # press 1 cm into the top over 0.4 s
+        sim.set_collider_pose("ball", (0.0, 0.0, top + 0.04 - 0.01 * (k + 1) / 40))
+        sim.step()
+    pressed = sim.collider_wrench("ball")
+    assert pressed[2] > 0.0                             # the block pushes the ball up
+    phi = sim.colliders["ball"].signed_distance(sim.vertex_positions())[0]
+    assert phi.min() > -1e-6
+    e_before = sim.energy()["total"]
+    for k in range(40):                                 # withdraw well clear
+        sim.set_collider_pose("ball", (0.0, 0.0, top + 0.03 + 0.1 * (k + 1) / 40))
+        sim.step()
+    assert np.allclose(sim.collider_wrench("ball"), 0.0)
+    # No sticking: the top surface is back near its rest height, and no energy was gained.
+    ids = sim.body.surface.vertex_ids
+    z_top = sim.vertex_positions()[ids][:, 2].max()
+    assert z_top < top + 1e-3
+    assert sim.energy()["total"] <= e_before + 1e-6
