@@ -135,7 +135,7 @@ class Simulator:
             t0 = time.perf_counter()
             f_app = self.applied_forces()
             t1 = time.perf_counter()
-            if self.colliders and self.model.kind == "full":
+            if self.colliders:
                 model_stats = self.model.step(f_app, self.gravity, contact=self._contact_spec())
             else:
                 model_stats = self.model.step(f_app, self.gravity)

@@ -72,3 +72,15 @@ def test_sphere_pressed_then_withdrawn_releases_cleanly():
     z_top = sim.vertex_positions()[ids][:, 2].max()
     assert z_top < top + 1e-3
     assert sim.energy()["total"] <= e_before + 1e-6
+
+
+@pytest.mark.parametrize("domains, full_space", [(2, []), (2, ["domain_1"])])
+def test_reduced_block_on_floor_reaction_equals_weight(domains, full_space):
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"}}, kind="reduced", domains={"count": domains},
+                                 modes=10, full_space_domains=full_space, cubature={"samples": 0}))
+    weight = sim.model.vertex_mass.sum() * 9.81
+    sim.step(150)
+    wrench = sim.collider_wrench("floor")
+    assert abs(-wrench[2] - weight) < 0.01 * weight
+    phi = sim.colliders["floor"].signed_distance(sim.vertex_positions())[0]
+    assert phi.min() > -1e-6

@@ -20,15 +20,20 @@ import numpy as np
 import scipy.linalg as sla
 
 
-def solve_lcp(S, q, max_iterations=None, tol=1e-12):
+def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0):
     """lambda >= 0 with w = S lambda + q >= 0 and lambda . w = 0, for S (m, m) SPD.
 
     Active-set (block principal pivoting, one index at a time); returns (lambda, info).
+    regularize > 0 adds that fraction of mean(diag S) to the diagonal: for reduced bodies
+    with more contact rows than DOFs, where S is singular (the total force is determined
+    but not its split), it picks the least-norm split at a constraint error of that order.
     """
     m = len(q)
     lam = np.zeros(m)
     if m == 0:
         return lam, {"iterations": 0, "active": 0}
+    if regularize > 0.0:
+        S = S + regularize * max(float(np.mean(np.diag(S))), 1e-300) * np.eye(m)
     # Start from the constraints the unconstrained step violates: usually the final set.
     active = q < 0.0
     scale = max(float(np.abs(q).max()), 1e-300)

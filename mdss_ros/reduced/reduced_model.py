@@ -369,6 +369,7 @@ class ReducedModel:
         self.v_full = np.zeros_like(self.x_full)
         self.last = {"elastic": 0.0}
         self.stats = {}
+        self.contact = None
 
     @property
     def n_dofs(self):
@@ -817,10 +818,12 @@ class ReducedModel:
         t0 = time.perf_counter()
         if self.F == 0 and self.unsymmetric:
             lu = sla.lu_factor(A_ss, check_finite=False)
+            self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
             t1 = time.perf_counter()
             x = sla.lu_solve(lu, rhs, check_finite=False)
         elif self.F == 0:
             self.block_solver.factor(A_ss)
+            self._resolve = self.block_solver.solve
             t1 = time.perf_counter()
             x = self.block_solver.solve(rhs)
         else:
@@ -829,6 +832,7 @@ class ReducedModel:
                               shape=(self.S, self.F))
             A = sp.bmat([[sp.csr_matrix(A_ss), B], [B.T, self.ff_pattern.matrix(A_ff)]], format="csr")
             self.sparse_solver.factor(A)
+            self._resolve = self.sparse_solver.solve
             t1 = time.perf_counter()
             x = self.sparse_solver.solve(rhs)
         t2 = time.perf_counter()
@@ -847,8 +851,60 @@ class ReducedModel:
         return out
 
     # ------------------------------------------------------------------ step
-    def step(self, f_ext, gravity=None):
-        """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,)."""
+    def _contact_rows(self, contact, gm):
+        """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which),
+        or None. C = dt n^T J_l; under a co-rotating step the rigid part of the vertex
+        velocity, V + W x (x - C), is a constant folded into phi_eff."""
+        from ..contact.unilateral import find_contacts
+        ids = contact["vertices"]
+        x = self.positions_of(ids)
+        rows, which, phi, normals = find_contacts(contact["colliders"], x, x, contact["margin"])
+        if len(rows) == 0:
+            return None
+        verts = ids[rows]
+        xv = x[rows]
+        C = np.zeros((len(verts), self.n_gen))
+        dom_of = self.vertex_domain[verts]
+        for i, (kind, k) in enumerate(self.domain_kind):
+            sel = np.flatnonzero(dom_of == i)
+            if sel.size == 0:
+                continue
+            n = normals[sel]
+            if kind == "sub":
+                dom = self.subspace[k]
+                o = self.sub_offsets[k]
+                loc = self.vertex_local[verts[sel]]
+                RU = np.einsum("ij,ljb->lib", self.frames.R[k], dom.U3[loc])          # (s, 3, r)
+                C[sel, o:o + dom.r] = np.einsum("li,lib->lb", n, RU)
+                if dom.movable:
+                    C[sel, o + dom.r:o + dom.r + 3] = n
+                    C[sel, o + dom.r + 3:o + dom.r + 6] = np.cross(xv[sel] - self.frames.c[k], n)
+            else:
+                dofs = self.full_dof_of_vertex[verts[sel]]
+                ok = dofs >= 0
+                rr = sel[ok]
+                for a in range(3):
+                    C[rr, self.S + 3 * dofs[ok] + a] = n[ok, a]
+        C *= self.dt
+        phi_eff = phi.copy()
+        if gm is not None:
+            Cg, Vg, Wg = gm[:3]
+            phi_eff += self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
+        return verts, C, phi_eff, normals, which
+
+    def _contact_solve(self, rows, Q, dQ):
+        """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
+        from ..contact.unilateral import solve_lcp
+        _, C, phi, _, _ = rows
+        Y = self._resolve(np.ascontiguousarray(C.T)).reshape(len(dQ), -1)
+        # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
+        lam, _ = solve_lcp(C @ Y, C @ (Q + dQ) + phi, regularize=1e-9)
+        self._contact_lam = lam
+        return dQ + Y @ lam, lam
+
+    def step(self, f_ext, gravity=None, contact=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
+        as in BackwardEuler.step."""
         t0 = time.perf_counter()
         dt = self.dt
         gm = self._global_motion()
@@ -882,6 +938,10 @@ class ReducedModel:
         def residual(Q, G_k):
             return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
 
+        contact_rows = self._contact_rows(contact, gm) if contact else None
+        lam = None
+        if contact_rows is not None and self.scheme == "two_step":
+            raise SceneError("contact is available with the one-step scheme only")
         if self.scheme == "two_step":
             Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
             iterations = 1
@@ -893,9 +953,11 @@ class ReducedModel:
             for it in range(self.newton_iterations):
                 A = self._system(M_ss, K_ss, K_sI, K_ff, D)
                 dQ = self._solve(*A, -r)
+                if contact_rows is not None:
+                    dQ, lam = self._contact_solve(contact_rows, Q, dQ)
                 iterations += 1
                 step_len = 1.0
-                if self.newton_iterations > 1 and self.line_search and not self.unsymmetric:
+                if self.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
                     phi0 = self._potential(Q, p0, Mgen, D, Fn, energy)
                     slope = float(r @ dQ)
                     while step_len > 1e-4:
@@ -915,6 +977,20 @@ class ReducedModel:
                     break
         q, qd, frames, x_full, v_full = self._predict(Q, base)
         self.q, self.qd, self.frames = q, qd, frames
+        self.contact = None
+        if contact_rows is not None:
+            verts, _, _, normals, which = contact_rows
+            lam = getattr(self, "_contact_lam", np.zeros(len(verts)))
+            active = lam > 0
+            pts = self.positions_of(verts[active])
+            depth = np.zeros(active.sum())
+            for c_idx, col in enumerate(contact["colliders"]):
+                sel = which[active] == c_idx
+                if sel.any():
+                    depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
+            self.contact = {"vertices": verts[active], "normals": normals[active], "which": which[active],
+                            "forces": lam[active, None] * normals[active], "points": pts, "depth": depth,
+                            "candidates": int(len(verts))}
         if self.F:
             self.x_full, self.v_full = x_full, v_full
         self.last = {"elastic": energy}
