@@ -886,6 +886,15 @@ class ReducedModel:
                 for a in range(3):
                     C[rr, self.S + 3 * dofs[ok] + a] = n[ok, a]
         C *= self.dt
+        # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
+        # pushed out; their constraints would be infeasible, so they are not contacts.
+        norms = np.linalg.norm(C, axis=1)
+        movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
+        if not movable.all():
+            verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
+                                                 which[movable], xv[movable])
+            if len(verts) == 0:
+                return None
         phi_eff = phi.copy()
         if gm is not None:
             Cg, Vg, Wg = gm[:3]
