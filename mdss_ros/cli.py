@@ -38,35 +38,68 @@ def _make_sim(args):
 
 
 def cmd_run(args):
+    import signal
     from .timeline import TimelinePlayer
-    for opt, issue in (("mcap", "MCAP recording"), ("rrd", "rerun recording")):
-        if getattr(args, opt):
-            raise SystemExit(f"mdss run: --{opt}: {issue} is not built yet in this version")
+    rec = None
+    if args.mcap or args.rrd:
+        # Recording (mdss_ros.record.replay): files are opened before the model build, so a
+        # bad path fails at once; inputs go through the node's messages; SIGINT/SIGTERM stop
+        # the run and finish the files.
+        from .errors import MdssError
+        from .record.replay import RunRecording
+        try:
+            rec = RunRecording(mcap=args.mcap, rrd=args.rrd)
+        except MdssError as err:
+            raise SystemExit(f"mdss run: {err}")
     t0 = time.perf_counter()
-    sim = _make_sim(args)
+    if rec is None:
+        sim = _make_sim(args)
+    else:
+        from .errors import MdssError
+        try:
+            sim = rec.build(args.scene, _parse_sets(args.set))
+        except MdssError as err:
+            rec.finish()
+            raise SystemExit(f"mdss run: {err}")
     st = sim.stats()
     print(f"mdss run: scene {sim.scene.name!r} ({sim.scene.source}): {st['kind']} model, "
           f"{st['vertices']} vertices, {st['tets']} tets, {st['dofs']} DOFs, "
           f"dt = {sim.dt:.6g} s, built in {time.perf_counter() - t0:.2f} s")
     steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))
-    player = TimelinePlayer(sim.scene["timeline"])
+    if rec is not None:
+        rec.start(sim)
+        player = rec
+    else:
+        player = TimelinePlayer(sim.scene["timeline"])
     step_ms = []
     rest = sim.rest_positions()
     report_every = max(1, steps // 10)
-    for k in range(steps):
-        for ev in player.apply_due(sim):
-            print(f"  t = {sim.time:7.3f} s  input {ev['topic']}: "
-                  f"{ {k2: v for k2, v in ev.items() if k2 not in ('t', 'topic')} }")
-        sim.step()
-        step_ms.append(sim.stats()["step_ms"])
-        x = sim.vertex_positions()
-        if not np.all(np.isfinite(x)):
-            raise SystemExit(f"mdss run: non-finite positions at step {k + 1} (t = {sim.time:.4f} s)")
-        if (k + 1) % report_every == 0 or k + 1 == steps:
-            disp = np.linalg.norm(x - rest, axis=1).max()
-            e = sim.energy()
-            print(f"  step {k + 1:6d}/{steps}  t = {sim.time:7.3f} s  max |u| = {disp:.5g} m  "
-                  f"E_total = {e['total']:.6g} J  step {step_ms[-1]:.2f} ms")
+    try:
+        for k in range(steps):
+            if rec is not None and rec.stop_requested:
+                print(f"mdss run: {signal.Signals(rec.stop_signal).name} at step {k} (t = {sim.time:.3f} s); "
+                      f"finishing the recording")
+                steps = k
+                break
+            for ev in player.apply_due(sim):
+                print(f"  t = {sim.time:7.3f} s  input {ev['topic']}: "
+                      f"{ {k2: v for k2, v in ev.items() if k2 not in ('t', 'topic')} }")
+            sim.step()
+            step_ms.append(sim.stats()["step_ms"])
+            x = sim.vertex_positions()
+            if not np.all(np.isfinite(x)):
+                raise SystemExit(f"mdss run: non-finite positions at step {k + 1} (t = {sim.time:.4f} s)")
+            if rec is not None:
+                rec.after_step(k, step_ms[-1])
+            if (k + 1) % report_every == 0 or k + 1 == steps:
+                disp = np.linalg.norm(x - rest, axis=1).max()
+                e = sim.energy()
+                print(f"  step {k + 1:6d}/{steps}  t = {sim.time:7.3f} s  max |u| = {disp:.5g} m  "
+                      f"E_total = {e['total']:.6g} J  step {step_ms[-1]:.2f} ms")
+    finally:
+        if rec is not None:
+            for line in rec.finish():
+                print(f"mdss run: {line}")
     wall = time.perf_counter() - t0
     summary = {
         "scene": sim.scene.name, "kind": st["kind"], "steps": steps, "sim_time": sim.time,
@@ -74,17 +107,100 @@ def cmd_run(args):
         "max_displacement": float(np.linalg.norm(sim.vertex_positions() - rest, axis=1).max()),
         "energy": sim.energy(), "wall_s": wall,
     }
+    median = f"{summary['step_ms_median']:.2f}" if step_ms else "-"
     print(f"mdss run: done, {steps} steps to t = {sim.time:.3f} s in {wall:.2f} s wall "
-          f"(median step {summary['step_ms_median']:.2f} ms)")
+          f"(median step {median} ms)")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2))
         print(f"mdss run: summary written to {args.json}")
+    return 128 + rec.stop_signal if rec is not None and rec.stop_signal else 0
+
+
+def cmd_replay(args):
+    """`mdss replay LOG.mcap [--scene S] [--check]` (mdss_ros.record.replay). Exit 0: replayed
+    (and with --check, every recorded output reproduced); 1: outputs differ; 2: bad file."""
+    from .errors import MdssError
+    from .record.replay import replay
+    t0 = time.perf_counter()
+    try:
+        res = replay(args.log, scene=args.scene, overrides=_parse_sets(args.set), check=args.check)
+    except MdssError as err:
+        print(f"mdss replay: {err}", file=sys.stderr)
+        return 2
+    for w in res.warnings:
+        print(f"mdss replay: warning: {w}")
+    print(f"mdss replay: {args.log}: {res.inputs} inputs, {res.steps} steps to t = {res.sim_time:.3f} s "
+          f"in {time.perf_counter() - t0:.2f} s")
+    if not args.check:
+        return 0
+    if res.ok:
+        print(f"mdss replay: check passed: {res.compared} recorded output messages reproduced bit for bit")
+        return 0
+    print(f"mdss replay: check FAILED: {res.mismatches} of {res.compared} output messages differ", file=sys.stderr)
+    if res.first_mismatch:
+        print(f"  first mismatch: {res.first_mismatch}", file=sys.stderr)
+    for topic, n in res.missing.items():
+        print(f"  {topic}: {n} recorded message(s) not reproduced", file=sys.stderr)
+    for topic, n in res.extra.items():
+        print(f"  {topic}: {n} replayed message(s) not in the recording", file=sys.stderr)
+    return 1
+
+
+COMPARE = [
+    ("single domain", ["model.domains.count=1", "model.cubature.interface=exact"]),
+    ("no interface cubature", ["model.cubature.interface=exact"]),
+    ("full cubature", []),
+    ("full space", ["model.kind=full"]),
+]
+
+
+def bench_compare(args):
+    """The paper's Tables 3 and 4 on this machine: per-phase medians and frame rate for
+    one domain (same modes per domain), domain cubature with exact interfaces, full
+    cubature (the scene as written) and the full-space model, each in its own process."""
+    rows = []
+    print(f"mdss bench --compare {args.scene}: each configuration in its own process "
+          f"(precompute is built or loaded first; --steps {args.steps})", flush=True)
+    for label, sets in COMPARE:
+        steps = args.steps if label != "full space" else min(args.steps, 3)
+        out = Path(args.json or "bench_compare.json").with_suffix(f".{label.replace(' ', '_')}.json")
+        cmd = [sys.executable, "-m", "mdss_ros.cli", "bench", args.scene, "--steps", str(steps), "--json", str(out)]
+        for item in (args.set or []) + sets:
+            cmd += ["--set", item]
+        t0 = time.perf_counter()
+        run = subprocess.run(cmd, capture_output=True, text=True)
+        if run.returncode != 0:
+            print(f"  {label}: failed\n{run.stderr[-1500:]}", flush=True)
+            continue
+        r = json.loads(out.read_text())
+        m = r["median_ms"]
+        row = {"config": label, "dofs": r["dofs"], "domains": r["domains"], "wall_s": time.perf_counter() - t0,
+               "domain_ms": m.get("domain_ms", m.get("assembly_ms", float("nan"))),
+               "coupling_ms": m.get("coupling_ms", 0.0),
+               "factor_solve_ms": m.get("factor_ms", 0.0) + m.get("solve_ms", 0.0),
+               "surface_ms": m["surface_ms"], "step_and_surface_ms": m["step_and_surface_ms"]}
+        row["fps"] = 1000.0 / row["step_and_surface_ms"]
+        rows.append(row)
+        print(f"  {label:22s} done in {row['wall_s']:.0f} s", flush=True)
+    print(f"\n  {'configuration':22s} {'DOFs':>7s} {'domains':>7s} {'domain':>9s} {'coupling':>9s} "
+          f"{'fact+solve':>10s} {'surface':>8s} {'step+surf':>10s} {'fps':>7s}")
+    for r in rows:
+        print(f"  {r['config']:22s} {r['dofs']:7d} {r['domains']:7d} {r['domain_ms']:8.2f}ms {r['coupling_ms']:8.2f}ms "
+              f"{r['factor_solve_ms']:9.2f}ms {r['surface_ms']:7.2f}ms {r['step_and_surface_ms']:9.2f}ms {r['fps']:7.1f}")
+    print("  (full space: 'domain' is assembly; one Newton iteration per step)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+        print(f"mdss bench: written {args.json}")
     return 0
 
 
 def cmd_bench(args):
     if args.fem_scaling:
         return bench_fem_scaling(args)
+    if args.compare:
+        if not args.scene:
+            raise SystemExit("mdss bench --compare needs a SCENE")
+        return bench_compare(args)
     if not args.scene:
         raise SystemExit("mdss bench: give a SCENE or --fem-scaling")
     t0 = time.perf_counter()
@@ -238,6 +354,14 @@ def main(argv=None):
     p.add_argument("--json", help="write a JSON summary here")
     p.set_defaults(func=cmd_run)
 
+    p = sub.add_parser("replay", help="replay a recorded run's inputs headless; --check compares its outputs")
+    p.add_argument("log", metavar="LOG.mcap", help="an MCAP recorded by mdss run --mcap")
+    p.add_argument("--scene", help="scene to replay in (default: the scene stored in the recording)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key of --scene")
+    p.add_argument("--check", action="store_true",
+                   help="compare every recorded output message with the replayed one, byte for byte")
+    p.set_defaults(func=cmd_replay)
+
     p = sub.add_parser("precompute", help="build a scene's bases and cubature into the cache, with progress")
     scene_args(p)
     p.add_argument("--cache-dir", help="cache folder (default $MDSS_CACHE_DIR or ~/.cache/mdss_ros)")
@@ -249,6 +373,8 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--json", help="write results here")
     p.add_argument("--fem-scaling", action="store_true", help="full-space Newton iteration cost vs mesh size")
+    p.add_argument("--compare", action="store_true",
+                   help="Tables 3/4: single domain, no interface cubature, full cubature, full space")
     p.add_argument("--fem-sizes", default="10000,50000,240000", help="tet counts for --fem-scaling")
     p.set_defaults(func=cmd_bench)
 

@@ -1,0 +1,235 @@
+"""rerun logging of a Simulator (rerun-sdk 0.41), for `mdss run --rrd` and the node.
+
+    from mdss_ros.record.rerun_logger import RerunLogger
+    log = RerunLogger(sim, mode="file", path="run.rrd")   # off | file | spawn | serve
+    log.log_step()                       # the state now (call after reset and each step)
+    log.collider_pose(name, position, orientation)   # when a collider pose is applied
+    log.close()                          # flush and close; idempotent (also a context manager)
+
+mode: "off" (every call is a no-op), "file" (write `path`; a bad path raises
+RerunLogError at construction), "spawn" (start a native viewer and stream to it),
+"serve" (an in-process gRPC server plus the web viewer; `url` is the viewer address).
+
+Entities (all in world coordinates, the `world` frame of the ROS outputs):
+  world/body/surface          Mesh3D: triangle indices and per-vertex domain colours
+                              logged once as static, vertex positions every logged step
+  world/domains/<name>        Transform3D of each domain frame (static TransformAxes3D)
+  world/colliders/<name>      the scene's collider shapes (static, local frame), Transform3D
+                              whenever the pose changed
+  world/contacts              Points3D of the contact points, and
+  world/contacts/forces       Arrows3D of the contact forces (when sim.contacts() exists)
+  plots/energy/{total,kinetic,elastic}, plots/step_ms, plots/contact_force   Scalars
+Timelines: `step` (sequence: sim.step_count) and `sim_time` (duration, seconds).
+A default blueprint shows the 3D view beside the three plots.
+
+rate: log every step (None) or at most `rate` Hz of sim time, with the node's rule
+(step k is logged when floor(k dt rate) changed).
+"""
+import math
+
+import numpy as np
+
+from ..errors import MdssError
+
+MODES = ("off", "file", "spawn", "serve")
+
+
+class RerunLogError(MdssError):
+    """rerun logging cannot start (bad mode, unwritable file, no viewer)."""
+
+
+def _palette():
+    from ..ros.convert import DOMAIN_PALETTE
+    return (np.asarray(DOMAIN_PALETTE) * 255).round().astype(np.uint8)
+
+
+def blueprint(bounds=None):
+    """The default layout: the 3D view (eye fitted to bounds (2, 3), z up) beside the plots."""
+    import rerun.blueprint as rrb
+    eye = None
+    if bounds is not None:
+        lo, hi = np.asarray(bounds, dtype=float)
+        center, size = 0.5 * (lo + hi), float(np.max(hi - lo)) or 1.0
+        eye = rrb.EyeControls3D(position=center + size * np.array([0.25, -1.1, 0.45]), look_target=center,
+                                eye_up=(0.0, 0.0, 1.0))
+    view = rrb.Spatial3DView(origin="world", name="body", eye_controls=eye)
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            view,
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="plots/energy", name="energy (J)"),
+                rrb.TimeSeriesView(origin="plots/step_ms", name="step (ms)"),
+                rrb.TimeSeriesView(origin="plots/contact_force", name="contact force (N)"),
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.SelectionPanel(state="collapsed"),
+    )
+
+
+class RerunLogger:
+    """Logs a Simulator to rerun; see the module docstring."""
+
+    def __init__(self, sim, mode="file", path=None, application_id="mdss_ros", recording_id=None,
+                 rate=None, domain_names=None, spawn_port=9876, web_port=None, grpc_port=None):
+        if mode not in MODES:
+            raise RerunLogError(f"rerun mode must be one of {', '.join(MODES)}, got {mode!r}")
+        self.sim = sim
+        self.mode = mode
+        self.path = path
+        self.rate = rate
+        self.url = None
+        self.closed = mode == "off"
+        self.frames = 0
+        self._last_logged = None
+        self._collider_poses = {}
+        self._logged_pose = {}
+        if mode == "off":
+            return
+        import rerun as rr
+        self.rr = rr
+        self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
+        self.rec.set_log_tick_enabled(False)
+        rest = np.asarray(sim.rest_positions())
+        bp = blueprint((rest.min(axis=0), rest.max(axis=0)))
+        try:
+            if mode == "file":
+                if not path:
+                    raise RerunLogError("rerun mode 'file' needs a path (rerun_path / --rrd)")
+                try:                              # rerun reports a bad path only in its log
+                    with open(path, "wb"):
+                        pass
+                except OSError as err:
+                    raise RerunLogError(f"cannot write rerun file {path}: {err.strerror or err}") from err
+                self.rec.save(str(path), default_blueprint=bp)
+            elif mode == "spawn":
+                self.rec.spawn(port=spawn_port, default_blueprint=bp)
+            else:
+                self.url = self.rec.serve_grpc(grpc_port=grpc_port, default_blueprint=bp)
+                rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.url)
+        except RerunLogError:
+            raise
+        except Exception as err:  # noqa: BLE001 - rerun raises various types for a missing viewer
+            raise RerunLogError(f"rerun mode {mode!r}: {type(err).__name__}: {err}") from err
+        if domain_names is None:
+            from .ros_messages import domain_names as names_of
+            domain_names = names_of(sim)
+        self.domain_names = list(domain_names)
+        self._log_static()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    # ----------------------------------------------------------------- static
+    def _log_static(self):
+        rr, rec, sim = self.rr, self.rec, self.sim
+        pal = _palette()
+        ids = np.asarray(sim.surface_vertex_ids())
+        vdom = getattr(sim.model, "vertex_domain", None)
+        dom = np.zeros(len(ids), np.int64) if vdom is None else np.asarray(vdom)[ids]
+        colors = pal[dom % len(pal)]
+        rec.log("world/body/surface", rr.Mesh3D.from_fields(
+            triangle_indices=np.asarray(sim.surface_triangles(), dtype=np.uint32), vertex_colors=colors),
+            static=True)
+        extent = float(np.ptp(np.asarray(sim.rest_positions()), axis=0).max()) or 1.0
+        for name in self.domain_names:
+            rec.log(f"world/domains/{name}", rr.TransformAxes3D(0.1 * extent), static=True)
+        for name, spec in sim.scene["colliders"].items():
+            shape = _collider_shape(rr, spec, extent)
+            if shape is not None:
+                rec.log(f"world/colliders/{name}", shape, static=True)
+        for path, color in (("plots/energy/total", (40, 40, 40)), ("plots/energy/kinetic", (214, 39, 40)),
+                            ("plots/energy/elastic", (31, 119, 180)), ("plots/step_ms", (255, 127, 14)),
+                            ("plots/contact_force", (44, 160, 44))):
+            rec.log(path, rr.SeriesLines(colors=[color], names=[path.rsplit("/", 1)[1]]), static=True)
+
+    # ----------------------------------------------------------------- per step
+    def collider_pose(self, name, position, orientation=(0.0, 0.0, 0.0, 1.0)):
+        """Remember a collider pose (logged with the next step). Not needed when the
+        Simulator has `colliders` (name -> object with position, orientation): those are read."""
+        self._collider_poses[name] = (np.asarray(position, float), np.asarray(orientation, float))
+
+    def _due(self):
+        k = self.sim.step_count
+        if self.rate is None or self._last_logged is None or k < self._last_logged:
+            return True
+        tick = lambda s: math.floor(s * self.sim.dt * self.rate + 1e-6)  # noqa: E731
+        return tick(k) > tick(self._last_logged)
+
+    def log_step(self, step_ms=None):
+        """Log the simulator's current state on the `step` and `sim_time` timelines."""
+        if self.closed or not self._due():
+            return False
+        rr, rec, sim = self.rr, self.rec, self.sim
+        self._last_logged = sim.step_count
+        rec.set_time("step", sequence=int(sim.step_count))
+        rec.set_time("sim_time", duration=float(sim.time))
+        x = np.asarray(sim.surface_positions(), dtype=np.float32)
+        if np.all(np.isfinite(x)):
+            rec.log("world/body/surface", rr.Mesh3D.from_fields(vertex_positions=x))
+        poses = np.asarray(sim.domain_poses(), dtype=np.float64)
+        for name, p in zip(self.domain_names, poses):
+            if np.all(np.isfinite(p)):
+                rec.log(f"world/domains/{name}", rr.Transform3D(translation=p[:3], quaternion=p[3:7]))
+        poses = dict(self._collider_poses)
+        for name, c in (getattr(sim, "colliders", None) or {}).items():   # mdss_ros.contact colliders
+            if hasattr(c, "position") and hasattr(c, "orientation"):
+                poses[name] = (np.asarray(c.position, float), np.asarray(c.orientation, float))
+        for name, (pos, quat) in poses.items():
+            if self._logged_pose.get(name) is None or not (np.array_equal(self._logged_pose[name][0], pos)
+                                                          and np.array_equal(self._logged_pose[name][1], quat)):
+                rec.log(f"world/colliders/{name}", rr.Transform3D(translation=pos, quaternion=quat))
+                self._logged_pose[name] = (pos.copy(), quat.copy())
+        self._collider_poses = {}
+        contact_force = 0.0
+        contacts_of = getattr(sim, "contacts", None)
+        if callable(contacts_of):
+            c = np.asarray(contacts_of(), dtype=np.float64).reshape(-1, 10)
+            c = c[np.all(np.isfinite(c), axis=1)]
+            rec.log("world/contacts", rr.Points3D(c[:, :3], radii=0.003, colors=[(230, 30, 30)]))
+            rec.log("world/contacts/forces", rr.Arrows3D(origins=c[:, :3], vectors=c[:, 7:10] * 0.01,
+                                                         colors=[(230, 30, 30)]))
+            contact_force = float(np.linalg.norm(c[:, 7:10], axis=1).sum()) if len(c) else 0.0
+        e = sim.energy()
+        for key in ("total", "kinetic", "elastic"):
+            if math.isfinite(e[key]):
+                rec.log(f"plots/energy/{key}", rr.Scalars(e[key]))
+        if step_ms is not None:
+            rec.log("plots/step_ms", rr.Scalars(float(step_ms)))
+        rec.log("plots/contact_force", rr.Scalars(contact_force))
+        self.frames += 1
+        return True
+
+    def close(self):
+        """Flush everything to the sink (file, viewer) and stop logging. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.rec.flush(timeout_sec=30.0)
+        finally:
+            if self.mode in ("file", "spawn"):
+                self.rec.disconnect()
+
+
+def _collider_shape(rr, spec, extent):
+    """A static rerun shape of a scene collider spec in its local frame (mdss_ros.contact.colliders:
+    sphere radius; capsule radius, half_height along local z; box half_extents; plane z = 0)."""
+    shape = spec.get("shape")
+    color = [(150, 150, 160, 110)]
+    if shape == "sphere":
+        return rr.Ellipsoids3D(radii=[float(spec["radius"])], colors=color, fill_mode="solid")
+    if shape == "capsule":
+        hh = float(spec["half_height"])           # rerun's capsule runs from its origin along +z
+        return rr.Capsules3D(lengths=[2.0 * hh], radii=[float(spec["radius"])], translations=[(0.0, 0.0, -hh)],
+                             colors=color)
+    if shape == "box":
+        return rr.Boxes3D(half_sizes=[spec["half_extents"]], colors=color, fill_mode="solid")
+    if shape == "plane":
+        s = 2.0 * extent
+        return rr.Boxes3D(half_sizes=[[s, s, 1e-4 * s]], colors=color, fill_mode="solid")
+    return None

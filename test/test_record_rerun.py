@@ -1,0 +1,132 @@
+"""rerun logging: `mdss run --rrd` read back with rerun's own reader (rerun.chunk.RrdReader);
+the web-viewer screenshot (slow, needs Debian chromium)."""
+import shutil
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mdss_ros.cli import main as mdss
+from mdss_ros.record.rerun_logger import RerunLogError, RerunLogger
+
+ROOT = Path(__file__).resolve().parent.parent
+STEPS = 45
+SETS = ["body.mesh.cell=0.05", "model.domains.count=2", "model.modes=6", "model.cubature={samples: 0}",
+        "colliders={ball: {shape: sphere, radius: 0.05, position: [0.5, 0.0, 0.6]}, "
+        "rod: {shape: capsule, radius: 0.02, half_height: 0.1, position: [0.2, 0.0, 0.6]}}",
+        "timeline=[{t: 0.0, topic: wrench, frame_id: tip, force: [0, 0, -8.0]},"
+        " {t: 0.2, topic: collider_pose, name: ball, position: [0.5, 0.0, 0.5]},"
+        " {t: 0.3, topic: collider_pose, name: ball, position: [0.5, 0.0, 0.45]}]"]
+
+
+def _small_sim():
+    from mdss_ros.scene import read_yaml
+    from mdss_ros.simulator import Simulator
+    return Simulator("cantilever", overrides={k: read_yaml(v) for k, v in (s.split("=", 1) for s in SETS)})
+
+
+@pytest.fixture(scope="module")
+def rrd(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rrd") / "run.rrd"
+    args = ["run", "cantilever", "--steps", str(STEPS), "--rrd", str(path)]
+    for s in SETS:
+        args += ["--set", s]
+    assert mdss(args) == 0
+    return path
+
+
+def _chunks(path):
+    from rerun.chunk import RrdReader
+    reader = RrdReader(path)
+    assert len(reader.recordings()) == 1 and len(reader.blueprints()) == 1     # the default blueprint
+    return list(reader.store().stream())
+
+
+def test_rrd_holds_the_expected_entities_and_frame_counts(rrd):
+    static, temporal, timelines = defaultdict(set), defaultdict(int), defaultdict(set)
+    steps = defaultdict(list)
+    for c in _chunks(rrd):
+        if c.entity_path.startswith("/__"):
+            continue
+        rb = c.to_record_batch()
+        cols = {n.split(":")[-1] for n in rb.schema.names if ":" in n and not n.startswith("rerun.")}
+        if c.is_static:
+            static[c.entity_path] |= cols
+        else:
+            temporal[c.entity_path] += c.num_rows
+            timelines[c.entity_path] |= set(c.timeline_names)
+            steps[c.entity_path] += rb.column("step").to_pylist()
+    frames = STEPS + 1                                     # t = 0 and every step
+    assert static["/world/body/surface"] == {"triangle_indices", "vertex_colors"}
+    for entity in ("/world/body/surface", "/world/domains/domain_0", "/world/domains/domain_1",
+                   "/plots/energy/total", "/plots/energy/kinetic", "/plots/energy/elastic",
+                   "/plots/contact_force", "/world/contacts", "/world/contacts/forces"):
+        assert temporal[entity] == frames, entity
+        assert {"step", "sim_time"} <= timelines[entity]
+        assert sorted(steps[entity]) == list(range(frames))
+    assert temporal["/plots/step_ms"] == STEPS                # no step time at t = 0
+    assert static["/world/domains/domain_0"] == {"axis_length"}
+    assert "half_sizes" in static["/world/colliders/ball"] and "lengths" in static["/world/colliders/rod"]
+    assert temporal["/world/colliders/ball"] == 3             # initial pose and two changes
+    assert temporal["/world/colliders/rod"] == 1
+
+
+def test_rrd_vertex_positions_are_the_simulators(rrd):
+    sim = _small_sim()
+    sim.set_wrench("tip", force=(0, 0, -8.0))
+    sim.step(STEPS)
+    want = np.asarray(sim.surface_positions(), dtype=np.float32)
+    last = None
+    for c in _chunks(rrd):
+        if c.entity_path == "/world/body/surface" and not c.is_static:
+            rb = c.to_record_batch()
+            k = rb.column("step").to_pylist()
+            col = rb.column("Mesh3D:vertex_positions")
+            for i in range(len(k)):
+                if k[i] == STEPS:
+                    last = np.asarray(col[i].values.flatten(), dtype=np.float32).reshape(-1, 3)
+    assert last is not None
+    np.testing.assert_array_equal(last, want)
+
+
+def test_logger_modes_and_errors(tmp_path):
+    sim = _small_sim()
+    off = RerunLogger(sim, mode="off")
+    assert off.log_step() is False
+    off.close()
+    with pytest.raises(RerunLogError, match="must be one of"):
+        RerunLogger(sim, mode="video")
+    with pytest.raises(RerunLogError, match="needs a path"):
+        RerunLogger(sim, mode="file")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(RerunLogError, match="Not a directory"):
+        RerunLogger(sim, mode="file", path=tmp_path / "f" / "x.rrd")
+    # rate: at most 30 Hz of sim time at dt = 1/90 -> every third step
+    path = tmp_path / "rate.rrd"
+    with RerunLogger(sim, mode="file", path=path, rate=30.0) as log:
+        logged = []
+        for _ in range(10):
+            logged.append(log.log_step())
+            sim.step()
+    assert logged == [True, False, False, True, False, False, True, False, False, True]
+    assert log.frames == 4 and path.stat().st_size > 0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="needs Debian chromium (apt-get install chromium)")
+def test_web_viewer_screenshot_shows_the_mesh(tmp_path):
+    from PIL import Image
+    out = tmp_path / "viewer.png"
+    res = subprocess.run([sys.executable, str(ROOT / "launch_scripts" / "rerun_screenshot.py"), "--steps", "30",
+                          "--out", str(out)] + [a for s in SETS[:4] for a in ("--set", s)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert res.returncode == 0, res.stderr
+    img = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    assert img.shape[0] >= 600 and img.shape[1] >= 1000
+    # the surface is drawn in the domain colours (tab10 blue and orange), shaded: count pixels near them
+    for rgb in ((31, 119, 180), (255, 127, 14)):
+        near = (np.abs(img - np.array(rgb)).sum(axis=2) < 60).sum()
+        assert near > 2000, (rgb, near)
