@@ -61,3 +61,14 @@ def test_corrupt_and_foreign_files_are_reported_and_rebuilt(tmp_path):
     _run(cache)
     events = [e for e in cache.events if e[0] == "bases"]
     assert events[0][1] == "corrupt" and "other inputs" in events[0][2]
+
+
+def test_cache_status_reports_missing_then_hit(tmp_path):
+    from mdss_ros.precompute import cache_status
+    scene = load_scene("cantilever", overrides=OV)
+    cache = PrecomputeCache(tmp_path)
+    before = cache_status(scene, cache)
+    assert not before["hit"] and before["estimate_s"] > 0
+    Simulator(scene, cache=PrecomputeCache(tmp_path))
+    after = cache_status(scene, PrecomputeCache(tmp_path))
+    assert after["hit"] and after["estimate_s"] is None and after["path"].endswith(".npz")

@@ -29,7 +29,7 @@ from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
 from ..fem.elements import TetGeometry, element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
-from ..precompute import PrecomputeCache, cache_key, code_hash
+from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
 from .coupling import (TwoPhaseProjection, project_coupling, project_coupling_left, project_forces, skew_batch,
@@ -81,10 +81,7 @@ class ReducedModel:
 
         # Partition and bases, from the cache when their inputs are unchanged ----------
         self.cache = cache if cache is not None else PrecomputeCache()
-        mat = body.material
-        self.bases_key = cache_key("bases", code_hash("bases"), X, tets, mat.kind_id, mat.params, mat.density,
-                                   body.pinned, cfg.get("domains"), cfg.get("full_space_domains"),
-                                   cfg["modes"], cfg.get("basis") or {})
+        self.bases_key = bases_cache_key(body, cfg)
         hit = self.cache.load("bases", self.bases_key)
         if hit is not None:
             labels, names = hit[0]["labels"], list(hit[1]["names"])
@@ -207,8 +204,7 @@ class ReducedModel:
             if interface != "exact":
                 raise SceneError("model.cubature.interface: set model.cubature.samples > 0 as well")
             return {"samples": 0}
-        key = cache_key("cubature", self.bases_key, code_hash("cubature"), ccfg, self.dt, self.alpha, self.beta,
-                        self.cfg.get("coupling") or {})
+        key = cubature_cache_key(self.bases_key, ccfg, self.dt, self.alpha, self.beta, self.cfg)
         hit = self.cache.load("cubature", key)
         if hit is not None:
             say(f"cache: cubature loaded from {self.cache.path('cubature', key)}")
