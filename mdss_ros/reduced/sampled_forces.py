@@ -32,6 +32,16 @@ def sample_jacobians(U3, tets, grads):
 _CHUNK = 64
 
 
+@njit(cache=True, inline="always")
+def _deformation_gradient(G_s, q, F):
+    """F = I + unvec(G_s q) for one sample: G_s (9, r), q (r,), F (3, 3) written."""
+    for a in range(9):
+        acc = 1.0 if a % 4 == 0 else 0.0          # vec(I) has ones at 0, 4, 8
+        for b in range(G_s.shape[1]):
+            acc += G_s[a, b] * q[b]
+        F[a // 3, a % 3] = acc
+
+
 @njit(cache=True, parallel=True)
 def sampled_kernel(G, wV, q, kind_id, params, want_hessian, energy_out, g_out, WG_out, CG_out):
     """Per-sample energy, reduced force and the two factors of the reduced stiffness.
@@ -47,11 +57,7 @@ def sampled_kernel(G, wV, q, kind_id, params, want_hessian, energy_out, g_out, W
         C = np.empty((9, 9))
         work = np.empty(WORK_LEN)
         for s in range(c * _CHUNK, min(s_count, (c + 1) * _CHUNK)):
-            for a in range(9):
-                acc = 1.0 if a % 4 == 0 else 0.0          # vec(I) has ones at 0, 4, 8
-                for b in range(r):
-                    acc += G[s, a, b] * q[b]
-                F[a // 3, a % 3] = acc
+            _deformation_gradient(G[s], q, F)
             psi = material_point_ws(kind_id, F, params, P, C, want_hessian, False, work)
             w = wV[s]
             energy_out[s] = w * psi
@@ -131,11 +137,7 @@ def contributions(G, volume, Q, kind_id, params, out):
         work = np.empty(WORK_LEN)
         for e in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
             for t in range(T):
-                for a in range(9):
-                    acc = 1.0 if a % 4 == 0 else 0.0
-                    for b in range(r):
-                        acc += G[e, a, b] * Q[t, b]
-                    F[a // 3, a % 3] = acc
+                _deformation_gradient(G[e], Q[t], F)
                 material_point_ws(kind_id, F, params, P, C, False, False, work)
                 for b in range(r):
                     acc = 0.0
