@@ -47,6 +47,7 @@ class Simulator:
         self.model = build_model(scene, self.body, progress, cache)
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
+        self._dt = self.model.dt
         self._make_colliders()
         self._collider_names = set(self.colliders)
         if hasattr(self.model, "watch"):
@@ -60,6 +61,8 @@ class Simulator:
             self.colliders = {name: make_collider(name, spec) for name, spec in self.scene["colliders"].items()}
         except SceneError as err:
             raise SceneError(f"{self.scene.source}: {err}") from err
+        # Poses at the start of the coming step, for sweeping fast colliders.
+        self._collider_start = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
 
     def reset(self):
         """Back to the rest state at t = 0 with no inputs; colliders at their scene poses."""
@@ -76,7 +79,12 @@ class Simulator:
 
     @property
     def dt(self):
-        return self.model.dt
+        return self._dt
+
+    #: A collider may move at most this fraction of the contact margin per (sub-)step;
+    #: faster motion is split into sub-steps so it cannot jump over surface vertices.
+    MAX_COLLIDER_TRAVEL = 0.5
+    MAX_SUBSTEPS = 32
 
     # ----------------------------------------------------------------- inputs
     def set_wrench(self, handle, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)):
@@ -136,7 +144,7 @@ class Simulator:
             f_app = self.applied_forces()
             t1 = time.perf_counter()
             if self.colliders:
-                model_stats = self.model.step(f_app, self.gravity, contact=self._contact_spec())
+                model_stats = self._step_with_colliders(f_app)
             else:
                 model_stats = self.model.step(f_app, self.gravity)
             t2 = time.perf_counter()
@@ -178,6 +186,36 @@ class Simulator:
         gravity = -float((self.model.vertex_mass * (x @ self.gravity)).sum())
         return {"kinetic": kinetic, "elastic": elastic, "gravity": gravity,
                 "total": kinetic + elastic + gravity}
+
+    def _step_with_colliders(self, f_app):
+        """One step with contact. Colliders that moved more than MAX_COLLIDER_TRAVEL x the
+        contact margin since the last step are swept in sub-steps (poses interpolated,
+        dt split) so a fast collider cannot pass through the surface between two steps."""
+        spec = self._contact_spec()
+        moved = 0.0
+        for name, c in self.colliders.items():
+            p0, _ = self._collider_start.get(name, (c.position, c.orientation))
+            moved = max(moved, float(np.linalg.norm(c.position - p0)))
+        n_sub = int(min(self.MAX_SUBSTEPS, max(1, np.ceil(moved / (self.MAX_COLLIDER_TRAVEL * spec["margin"])))))
+        if n_sub == 1:
+            stats = self.model.step(f_app, self.gravity, contact=spec)
+        else:
+            targets = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
+            starts = {name: self._collider_start.get(name, targets[name]) for name in targets}
+            self.model.set_dt(self._dt / n_sub)
+            try:
+                for k in range(1, n_sub + 1):
+                    a = k / n_sub
+                    for name, c in self.colliders.items():
+                        (p0, q0), (p1, q1) = starts[name], targets[name]
+                        q = (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1)
+                        c.set_pose((1 - a) * p0 + a * p1, q)
+                    stats = self.model.step(f_app, self.gravity, contact=spec)
+            finally:
+                self.model.set_dt(self._dt)
+            stats = dict(stats, collider_substeps=n_sub)
+        self._collider_start = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
+        return stats
 
     def _contact_spec(self):
         if not hasattr(self, "_contact_margin"):

@@ -35,6 +35,10 @@ class FullSpaceModel:
     def dt(self):
         return self.integrator.dt
 
+    def set_dt(self, dt):
+        """Change the step (collider sub-steps); the system is re-assembled every step anyway."""
+        self.integrator.dt = float(dt)
+
     @property
     def n_dofs(self):
         return self.force_model.n_free

@@ -371,6 +371,10 @@ class ReducedModel:
     def n_dofs(self):
         return self.n_gen
 
+    def set_dt(self, dt):
+        """Change the step (collider sub-steps); every term of a step reads self.dt."""
+        self.dt = float(dt)
+
     def set_rigid_velocity(self, linear, angular, center=None):
         """Give the whole body a rigid velocity v + w x (x - center) (default: its centre of mass)."""
         linear, angular = np.asarray(linear, float), np.asarray(angular, float)
