@@ -86,14 +86,14 @@ def test_reduced_block_on_floor_reaction_equals_weight(domains, full_space):
     assert phi.min() > -1e-6
 
 
-def _fast_ball_run(kind, check_shadow):
+def _fast_ball_run(kind, check_shadow, young=1e5):
     """A sphere driven at 5 m/s into a soft block (5.6 cm per 1/90 s step, more than its
     radius). Returns after asserting per step: finite, no surface vertex inside the ball,
     and (check_shadow) the surface vertices in the ball's path stay ahead of its centre."""
     scene = _block_scene({"floor": {"shape": "plane"},
                           "ball": {"shape": "sphere", "radius": 0.04, "position": [-0.3, 0.0, 0.05]}},
                          kind=kind, integrator={"dt": 1 / 90, "newton_iterations": 1})
-    scene["body"]["material"]["young"] = 1e4
+    scene["body"]["material"]["young"] = young
     if kind == "reduced":
         scene["model"].update({"domains": {"count": 2}, "modes": 10, "cubature": {"samples": 0}})
     sim = Simulator(scene)
@@ -112,12 +112,15 @@ def _fast_ball_run(kind, check_shadow):
 
 
 @pytest.mark.parametrize("kind", ["full", "reduced"])
-def test_fast_collider_is_swept_without_nan_or_vertices_inside(kind):
-    sim = _fast_ball_run(kind, check_shadow=False)
+def test_fast_collider_does_not_tunnel(kind):
+    """E = 1e5 Pa block; with vertex contacts alone the ball slips through a face by step 4-5
+    at 1e4-1e6 Pa; the sphere-face contacts stop it."""
+    sim = _fast_ball_run(kind, check_shadow=True)
     assert sim.stats().get("collider_substeps", 1) > 1
 
 
-@pytest.mark.xfail(strict=True, reason="contact is vertex-only: on a very soft frictionless block the vertices "
-                   "slide round a fast sphere and it slips through triangle faces (issue 4: triangle contact)")
-def test_fast_collider_does_not_tunnel_through_faces():
-    _fast_ball_run("full", check_shadow=True)
+@pytest.mark.xfail(strict=True, reason="a jelly-soft (1e4 Pa) frictionless block wraps round a 5 m/s sphere "
+                   "and vertex + face contacts at the end of each sub-step still let it through (needs "
+                   "continuous collision detection)")
+def test_fast_collider_does_not_tunnel_through_jelly():
+    _fast_ball_run("full", check_shadow=True, young=1e4)

@@ -96,3 +96,41 @@ def contact_wrenches(colliders, points, forces, which):
         tau = np.cross(points[sel] - col.position, f).sum(0) if sel.any() else np.zeros(3)
         out[col.name] = np.concatenate([f.sum(0), tau])
     return out
+
+
+def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3):
+    """Sphere colliders against surface triangles, where vertices alone let a sphere slip
+    through a face: the closest point of each nearby triangle to the sphere's centre.
+
+    positions (S, 3) surface vertices; triangles (T, 3) into them. Returns (tri (k,),
+    barycentric (k, 3), collider index (k,), phi (k,), normals (k, 3)); closest points at a
+    corner are left to the vertex contacts.
+    """
+    from ..loads import closest_points_on_triangles
+    out = [], [], [], [], []
+    for c_idx, col in enumerate(colliders):
+        if col.shape != "sphere":
+            continue
+        tri_pos = positions[triangles]
+        # Cheap cull by the triangles' bounding spheres.
+        centroid = tri_pos.mean(axis=1)
+        reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
+        near = np.flatnonzero(np.linalg.norm(centroid - col.position, axis=1) < col.radius + margin + reach)
+        if near.size == 0:
+            continue
+        t = tri_pos[near]
+        d2, bary = closest_points_on_triangles(col.position, t[:, 0], t[:, 1], t[:, 2])
+        dist = np.sqrt(d2)
+        keep = (dist < col.radius + margin) & (bary.max(axis=1) < 1.0 - corner) & (dist > 1e-12)
+        if not keep.any():
+            continue
+        q = np.einsum("ki,kij->kj", bary[keep], t[keep])
+        n = (q - col.position) / dist[keep, None]
+        out[0].append(near[keep])
+        out[1].append(bary[keep])
+        out[2].append(np.full(keep.sum(), c_idx))
+        out[3].append(dist[keep] - col.radius)
+        out[4].append(n)
+    if not out[0]:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    return tuple(np.concatenate(a) for a in out)

@@ -70,7 +70,29 @@ class BackwardEuler:
         verts, which, phi, normals, dofs = verts[keep], which[keep], phi[keep], normals[keep], dofs[keep]
         C = np.zeros((len(verts), m.n_free))
         np.put_along_axis(C, dofs, dt * normals, axis=1)
+        if contact.get("triangles") is not None:
+            C, verts, phi, normals, which = self._triangle_rows(contact, x, C, verts, phi, normals, which)
         return verts, C, phi, normals, which
+
+    def _triangle_rows(self, contact, x, C, verts, phi, normals, which):
+        """Append sphere-face contacts: row dt n^T sum_i b_i (free DOFs of vertex i); the
+        contact 'vertex' of such a row is reported as the triangle's nearest corner."""
+        from ..contact.unilateral import find_triangle_contacts
+        m, dt = self.model, self.dt
+        ids = contact["vertices"]
+        tris = contact["triangles"]
+        t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x[ids], tris,
+                                                                  contact["margin"])
+        if len(t_idx) == 0:
+            return C, verts, phi, normals, which
+        corners = ids[tris[t_idx]]                                           # (k, 3) global ids
+        rows = np.zeros((len(t_idx), m.n_free))
+        for a in range(3):
+            d = m.pattern.free_dof[3 * corners[:, a, None] + np.arange(3)]
+            ok = (d >= 0).all(axis=1)
+            np.add.at(rows, (np.flatnonzero(ok)[:, None], d[ok]), dt * bary[ok, a, None] * t_n[ok])
+        return (np.vstack([C, rows]), np.concatenate([verts, corners[np.arange(len(t_idx)), bary.argmax(axis=1)]]),
+                np.concatenate([phi, t_phi]), np.concatenate([normals, t_n]), np.concatenate([which, t_which]))
 
     def step(self, x, v, f_ext, contact=None):
         """Advance one step. x, v, f_ext: (n_verts, 3). Returns (x', v').
@@ -132,7 +154,10 @@ class BackwardEuler:
                 _, C, phi, _, _ = rows
                 Y = self.solver.solve(np.ascontiguousarray(C.T))
                 Y = Y.reshape(len(dv), -1)
-                lam, lcp = solve_lcp(C @ Y, C @ (vk + dv) + phi)
+                # Face and vertex rows can be dependent (a face point near a vertex): a
+                # 1e-9 relative diagonal picks the least-norm split (unilateral.py).
+                lam, lcp = solve_lcp(C @ Y, C @ (vk + dv) + phi,
+                                     regularize=1e-9 if contact.get("triangles") is not None else 0.0)
                 dv = dv + Y @ lam
             t_fac += t1 - t0
             t_sol += time.perf_counter() - t1

@@ -855,37 +855,56 @@ class ReducedModel:
         """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which),
         or None. C = dt n^T J_l; under a co-rotating step the rigid part of the vertex
         velocity, V + W x (x - C), is a constant folded into phi_eff."""
-        from ..contact.unilateral import find_contacts
+        from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)
         rows, which, phi, normals = find_contacts(contact["colliders"], x, x, contact["margin"])
+        # Sphere-face contacts enter as weighted copies of their three corners' rows.
+        weights = np.ones(len(rows))
+        group = np.arange(len(rows))
+        if contact.get("triangles") is not None:
+            t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x,
+                                                                      contact["triangles"], contact["margin"])
+            if len(t_idx):
+                base = len(rows)
+                rows = np.concatenate([rows, contact["triangles"][t_idx].ravel()])
+                weights = np.concatenate([weights, bary.ravel()])
+                group = np.concatenate([group, base + np.repeat(np.arange(len(t_idx)), 3)])
+                which = np.concatenate([which, np.repeat(t_which, 3)])
+                phi = np.concatenate([phi, t_phi])
+                normals = np.concatenate([normals, np.repeat(t_n, 3, axis=0)])
         if len(rows) == 0:
             return None
+        n_rows = group.max() + 1
         verts = ids[rows]
         xv = x[rows]
-        C = np.zeros((len(verts), self.n_gen))
+        Cv = np.zeros((len(verts), self.n_gen))                 # one row per (contact, corner)
         dom_of = self.vertex_domain[verts]
         for i, (kind, k) in enumerate(self.domain_kind):
             sel = np.flatnonzero(dom_of == i)
             if sel.size == 0:
                 continue
-            n = normals[sel]
+            n = normals[sel] * weights[sel, None]
             if kind == "sub":
                 dom = self.subspace[k]
                 o = self.sub_offsets[k]
                 loc = self.vertex_local[verts[sel]]
                 RU = np.einsum("ij,ljb->lib", self.frames.R[k], dom.U3[loc])          # (s, 3, r)
-                C[sel, o:o + dom.r] = np.einsum("li,lib->lb", n, RU)
+                Cv[sel, o:o + dom.r] = np.einsum("li,lib->lb", n, RU)
                 if dom.movable:
-                    C[sel, o + dom.r:o + dom.r + 3] = n
-                    C[sel, o + dom.r + 3:o + dom.r + 6] = np.cross(xv[sel] - self.frames.c[k], n)
+                    Cv[sel, o + dom.r:o + dom.r + 3] = n
+                    Cv[sel, o + dom.r + 3:o + dom.r + 6] = np.cross(xv[sel] - self.frames.c[k], n)
             else:
                 dofs = self.full_dof_of_vertex[verts[sel]]
                 ok = dofs >= 0
                 rr = sel[ok]
                 for a in range(3):
-                    C[rr, self.S + 3 * dofs[ok] + a] = n[ok, a]
+                    Cv[rr, self.S + 3 * dofs[ok] + a] = n[ok, a]
+        C = np.zeros((n_rows, self.n_gen))
+        np.add.at(C, group, Cv)
         C *= self.dt
+        first = np.unique(group, return_index=True)[1]       # a representative corner per contact
+        verts, which, normals, xv = verts[first], which[first], normals[first], xv[first]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
         norms = np.linalg.norm(C, axis=1)
