@@ -44,10 +44,12 @@ from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped, WrenchSt
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import PointCloud2
 from shape_msgs.msg import Mesh
+from std_msgs.msg import Header
 from std_srvs.srv import Empty, Trigger
 from visualization_msgs.msg import Marker
 
 from .errors import MdssError
+from .record.ros_messages import Topics
 from .ros import convert
 from .ros import validate
 from .ros.validate import InputRejected, Limits
@@ -81,8 +83,10 @@ PARAMETERS = {
     "max_input_age": (1.0, "reject inputs stamped more than this many s before the sim time", True),
     "max_input_lead": (60.0, "reject inputs stamped more than this many s after the sim time", True),
     "max_point_forces": (1000, "reject ~/point_forces clouds with more points", True),
-    "mcap_path": ("", "MCAP recording file (not built in this version: warns)", False),
-    "rerun_mode": ("off", "rerun logging: off, file, spawn, serve (not built in this version: warns)", False),
+    "mcap_path": ("", "MCAP recording (a .mcap file, or a rosbag2 folder): every input applied and "
+                      "output published, log time = sim time; '' : off", False),
+    "rerun_mode": ("off", "rerun logging: off, file (.rrd at rerun_path), spawn (a viewer), serve (gRPC + "
+                          "web viewer)", False),
     "rerun_path": ("", "rerun .rrd file for rerun_mode file", False),
 }
 _RATES = ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate", "pose_publish_rate")
@@ -163,10 +167,11 @@ def parse_overrides(value):
 
 
 class _Input:
-    __slots__ = ("due", "seq", "kind", "apply")
+    __slots__ = ("due", "seq", "kind", "apply", "topic", "msg")
 
-    def __init__(self, due, seq, kind, apply):
+    def __init__(self, due, seq, kind, apply, topic=None, msg=None):
         self.due, self.seq, self.kind, self.apply = due, seq, kind, apply
+        self.topic, self.msg = topic, msg     # recorded when applied
 
 
 class MdssNode(Node):
@@ -224,6 +229,9 @@ class MdssNode(Node):
         self._step_ms, self._cycle_ms = deque(maxlen=100000), deque(maxlen=100000)
         self._window = (time.monotonic(), self.sim.time)
         self._traps = {}
+        self._recorder, self._rerun, self._closed = None, None, False
+        self._topics = Topics(self.get_fully_qualified_name())
+        self._open_recording()
 
         self._make_interfaces()
         self._publish_topology()
@@ -285,11 +293,6 @@ class MdssNode(Node):
             reason = self._check(name, self.get_parameter(name).value)
             if reason:
                 raise StartupError(f"parameter {reason}")
-        if self._p("mcap_path"):
-            self.get_logger().warn("mcap_path is set but MCAP recording is not built in this version; "
-                                   "nothing is recorded")
-        if self._p("rerun_mode") != "off":
-            self.get_logger().warn("rerun_mode is set but rerun logging is not built in this version")
 
     def _warn_unknown_parameters(self):
         known = set(PARAMETERS) | {"use_sim_time", "start_type_description_service"}
@@ -415,12 +418,12 @@ class MdssNode(Node):
         else:
             self._warned[err.kind] = (last, suppressed + 1)
 
-    def _enqueue(self, stamp, kind, apply):
+    def _enqueue(self, stamp, kind, apply, topic=None, msg=None):
         due = validate.due_time(stamp, self.sim.time, self._limits)
         if due is not None and due < self.sim.time - 0.5 * self.sim.dt:
             self._counts["late"] += 1
         self._seq += 1
-        self._queue.append(_Input(due, self._seq, kind, apply))
+        self._queue.append(_Input(due, self._seq, kind, apply, topic, msg))
 
     def _on_wrench(self, msg):
         self._counts["received"] += 1
@@ -430,7 +433,7 @@ class MdssNode(Node):
                 msg.header.frame_id, (w.force.x, w.force.y, w.force.z),
                 (w.torque.x, w.torque.y, w.torque.z), self.handles, self._limits)
             self._enqueue(convert.seconds(msg.header.stamp), "wrench",
-                          lambda: self._apply_wrench(handle, force, torque))
+                          lambda: self._apply_wrench(handle, force, torque), self._topics.wrench, msg)
         except InputRejected as err:
             self._reject(err, "~/wrench")
 
@@ -446,7 +449,8 @@ class MdssNode(Node):
         try:
             points, forces, durations = validate.point_forces(msg, self._p("world_frame"), self._limits)
             self._enqueue(convert.seconds(msg.header.stamp), "point_forces",
-                          lambda: [self.sim.add_point_force(p, f, d) for p, f, d in zip(points, forces, durations)])
+                          lambda: [self.sim.add_point_force(p, f, d) for p, f, d in zip(points, forces, durations)],
+                          self._topics.point_forces, msg)
         except InputRejected as err:
             self._reject(err, "~/point_forces")
 
@@ -457,7 +461,8 @@ class MdssNode(Node):
             validate.frame(msg.header.frame_id, self._p("world_frame"), f"colliders/{name}/pose")
             pos, quat = validate.pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w), self._limits)
             self._enqueue(convert.seconds(msg.header.stamp), "collider_pose",
-                          lambda: self.sim.set_collider_pose(name, pos, quat))
+                          lambda: self._apply_collider_pose(name, pos, quat),
+                          self._topics.collider_pose(name), msg)
         except InputRejected as err:
             self._reject(err, f"~/colliders/{name}/pose")
 
@@ -493,6 +498,8 @@ class MdssNode(Node):
             try:
                 item.apply()
                 self._counts["applied"] += 1
+                if item.msg is not None:
+                    self._record(item.topic, item.msg)
             except (KeyError, ValueError) as err:
                 self._reject(InputRejected("apply_error", f"{item.kind}: {err}"), item.kind)
 
@@ -528,8 +535,11 @@ class MdssNode(Node):
         except Exception as err:  # a solver failure must not take the node down
             self._fail(f"the step from t = {self.sim.time:.6g} s raised {type(err).__name__}: {err}")
             return
-        self._step_ms.append(1e3 * (time.perf_counter() - s0))
+        step_ms = 1e3 * (time.perf_counter() - s0)
+        self._step_ms.append(step_ms)
         self._publish_state(previous_step=k)
+        if self._rerun is not None:
+            self._log_rerun(step_ms)
         self._cycle_ms.append(1e3 * (time.perf_counter() - w0))
 
     def _due(self, rate_name, previous_step):
@@ -549,8 +559,8 @@ class MdssNode(Node):
 
     def _publish_state(self, previous_step=None, initial=False):
         """/clock and every output due after the step from previous_step (None: all)."""
-        t, frame = self.sim.time, self._p("world_frame")
-        self.pub_clock.publish(convert.clock(t))
+        t, frame, tp = self.sim.time, self._p("world_frame"), self._topics
+        self._publish(self.pub_clock, tp.clock, convert.clock(t))
         surface = [n for n in ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate")
                    if self._due(n, previous_step)]
         if surface:
@@ -558,31 +568,34 @@ class MdssNode(Node):
             if not self._finite("surface positions", x):
                 return
             if "points_publish_rate" in surface:
-                self.pub_points.publish(self._points.message(t, frame, x))
+                self._publish(self.pub_points, tp.points, self._points.message(t, frame, x))
             if "mesh_publish_rate" in surface:
-                self.pub_mesh.publish(self._mesh.encode(x))
+                self._publish(self.pub_mesh, tp.mesh, self._mesh.encode(x))
             if "marker_publish_rate" in surface:
-                self.pub_marker.publish(self._marker.encode(t, frame, x))
+                self._publish(self.pub_marker, tp.marker, self._marker.encode(t, frame, x))
         if self._due("pose_publish_rate", previous_step):
             poses = self.sim.domain_poses()
             wrenches = {c: self.sim.collider_wrench(c) for c in self.colliders}
             if not self._finite("domain poses", poses) or not all(
                     self._finite(f"wrench on collider {c!r}", w) for c, w in wrenches.items()):
                 return
-            self.pub_poses.publish(convert.pose_array(t, frame, poses))
-            for msg in convert.domain_transforms(t, frame, self.domain_names, poses):
-                self.pub_transforms.publish(msg)
+            self._publish(self.pub_poses, tp.domain_poses, convert.pose_array(t, frame, poses))
+            transforms = convert.domain_transforms(t, frame, self.domain_names, poses)
+            for msg in transforms:
+                self._publish(self.pub_transforms, self._transforms_topic, msg)
+            if self._recorder is not None:
+                self._recorder.write_tf(transforms, self._log_time())
             for c, w in wrenches.items():
-                self.pub_collider_wrench[c].publish(convert.wrench_stamped(t, frame, w))
+                self._publish(self.pub_collider_wrench[c], tp.collider_wrench(c), convert.wrench_stamped(t, frame, w))
         contacts_of = getattr(self.sim, "contacts", None)
         if callable(contacts_of):
             contacts = np.asarray(contacts_of(), dtype=np.float64)
             if len(contacts) and self._finite("contacts", contacts):
-                self.pub_contacts.publish(convert.contacts_cloud(t, frame, contacts))
+                self._publish(self.pub_contacts, tp.contacts, convert.contacts_cloud(t, frame, contacts))
 
     def _publish_topology(self):
         rest = np.asarray(self.sim.rest_positions())[self.surface_ids]
-        self.pub_topology.publish(convert.topology_mesh_bytes(rest, self.triangles))
+        self._publish(self.pub_topology, self._topics.topology, convert.topology_mesh_bytes(rest, self.triangles))
 
     def _fail(self, what):
         self._stability, self._failures = "failed", self._failures + 1
@@ -603,6 +616,125 @@ class MdssNode(Node):
         self._window = (time.monotonic(), self.sim.time)
         if self.sim.step_count == 0 and np.all(np.isfinite(self.sim.surface_positions())):
             self._publish_state(initial=True)
+
+    # ------------------------------------------------------------------ recording
+    def _open_recording(self):
+        """MCAP recorder and rerun logger of mcap_path / rerun_mode; a failure is logged and
+        the node goes on without that recording."""
+        log = self.get_logger()
+        self._transforms_topic = self._topics.namespace + "/domain_transforms"
+        path = self._p("mcap_path")
+        if path:
+            from .record.mcap_recorder import McapRecorder, RecordingError, bag_paths
+            try:
+                target, folder = bag_paths(path)
+                self._recorder = McapRecorder(target, bag_metadata=folder,
+                                              on_error=lambda text: self.get_logger().error(text))
+                self._recorder.add_metadata("mdss_run", self._run_metadata())
+                log.info(f"recording to {target} (MCAP, log time = sim time)")
+            except RecordingError as err:
+                self._recorder = None
+                log.error(f"{err}: nothing is recorded; the simulation goes on")
+        mode = self._p("rerun_mode")
+        if mode != "off":
+            from .record.rerun_logger import RerunLogError, RerunLogger
+            rrd = self._p("rerun_path") or None
+            rate = self._p("points_publish_rate")
+            try:
+                self._rerun = RerunLogger(self.sim, mode=mode, path=rrd, rate=rate if rate > 0 else None,
+                                          domain_names=self.domain_names)
+                where = rrd if mode == "file" else (self._rerun.url or "a spawned viewer")
+                log.info(f"rerun logging ({mode}) to {where}")
+            except RerunLogError as err:
+                self._rerun = None
+                log.error(f"{err}: no rerun logging; the simulation goes on")
+            except Exception as err:  # noqa: BLE001 - e.g. rerun missing: the node goes on
+                self._rerun = None
+                log.error(f"rerun logging ({mode}) failed to start: {type(err).__name__}: {err}; "
+                          f"the simulation goes on")
+
+    def _run_metadata(self):
+        """The `mdss_run` metadata `mdss run --mcap` writes (replay.RunRecording._metadata)."""
+        import json
+        import platform
+        from pathlib import Path
+        from . import __version__
+        scene = self.sim.scene
+        rates = {"points": self._p("points_publish_rate"), "mesh": self._p("mesh_publish_rate"),
+                 "marker": self._p("marker_publish_rate"), "pose": self._p("pose_publish_rate"),
+                 "diagnostics": self._p("diagnostics_rate")}
+        return {
+            "format": "mdss_run/1",
+            "recorder": "mdss_ros.node",
+            "scene_name": scene.name,
+            "scene_source": str(scene.source),
+            "scene_base_dir": str(Path(scene.base_dir).resolve()),
+            "scene_json": json.dumps(scene.data, sort_keys=True),
+            "namespace": self._topics.namespace,
+            "world_frame": self._p("world_frame"),
+            "rates_json": json.dumps(rates),
+            "diagnostics_clock": "wall time (the node's /diagnostics)",
+            "dt": repr(float(self.sim.dt)),
+            "real_time_factor": repr(self._p("real_time_factor")),
+            "mdss_ros_version": __version__,
+            "numpy_version": np.__version__,
+            "python": sys.version.split()[0],
+            "platform": platform.platform(),
+            "machine": platform.machine(),
+            "cache_events_json": "[]",
+            "log_time": "sim time (ns)",
+            "publish_time": "wall clock (ns since the epoch) when the message was produced",
+        }
+
+    def _log_time(self):
+        return int(round(self.sim.time * 1e9))
+
+    def _record(self, topic, msg, type_name=None):
+        rec = self._recorder
+        if rec is not None and rec.ok:
+            rec.write(topic, msg, self._log_time(), type_name=type_name, qos=self._topics.qos_of(topic),
+                      publish_time_ns=time.time_ns())
+
+    def _publish(self, pub, topic, msg):
+        """Publish msg (an object, or CDR bytes of the publisher's type) and record it."""
+        pub.publish(msg)
+        if self._recorder is not None:
+            self._record(topic, msg, type_name=None if not isinstance(msg, (bytes, bytearray)) else
+                         f"{pub.msg_type.__module__.split('.')[0]}/msg/{pub.msg_type.__name__}")
+
+    def _apply_collider_pose(self, name, pos, quat):
+        self.sim.set_collider_pose(name, pos, quat)
+        if self._rerun is not None:
+            self._rerun.collider_pose(name, pos, quat)
+
+    def _log_rerun(self, step_ms):
+        try:
+            self._rerun.log_step(step_ms)
+        except Exception as err:  # noqa: BLE001 - a viewer gone away must not stop the simulation
+            self.get_logger().error(f"rerun logging stopped: {type(err).__name__}: {err}; the simulation goes on")
+            rerun, self._rerun = self._rerun, None
+            try:
+                rerun.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+    def _close_recording(self):
+        rerun, self._rerun = self._rerun, None
+        if rerun is not None:
+            try:
+                rerun.close()
+                self.get_logger().info(f"rerun: {rerun.frames} frames logged"
+                                       + (f" to {rerun.path}" if rerun.mode == "file" else ""))
+            except Exception as err:  # noqa: BLE001
+                self.get_logger().error(f"rerun: closing failed: {type(err).__name__}: {err}")
+        rec, self._recorder = self._recorder, None
+        if rec is not None:
+            s = rec.finish()
+            if s["error"]:
+                self.get_logger().error(f"MCAP: {s['error']} (the file keeps the chunks completed before)")
+            else:
+                self.get_logger().info(f"MCAP: {s['path']} ({s['messages']} messages on {len(s['topics'])} "
+                                       f"topics, {s['bytes'] / 1e6:.2f} MB)")
 
     # ------------------------------------------------------------------ services
     def _srv_pause(self, request, response):
@@ -641,6 +773,7 @@ class MdssNode(Node):
         pending = sum(1 for i in self._queue if i.kind in _FORCE_INPUTS)
         self.sim.clear_forces()
         self._held.clear()
+        self._record(self._topics.clear_forces, Header(stamp=convert.stamp(self.sim.time), frame_id=""))
         self._queue = [i for i in self._queue if i.kind not in _FORCE_INPUTS]
         response.success = True
         response.message = (f"cleared wrenches on [{', '.join(held)}], all point forces and "
@@ -650,7 +783,7 @@ class MdssNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _on_diag_timer(self):
         self._trap_unknown_colliders()
-        self.pub_diag.publish(self.diagnostics())
+        self._publish(self.pub_diag, self._topics.diagnostics, self.diagnostics())
 
     def diagnostics(self):
         now = time.monotonic()
@@ -706,8 +839,18 @@ class MdssNode(Node):
                                    level, message, values)
 
     def close(self):
+        """Log the end and finish the recordings (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
         self.get_logger().info(f"shutting down at t = {self.sim.time:.6g} s after {self.sim.step_count} steps; "
                                f"rejected inputs: {sum(self._rejected.values())}")
+        self._close_recording()
+
+    def destroy_node(self):
+        if hasattr(self, "_closed"):
+            self._close_recording()
+        return super().destroy_node()
 
 
 # ---------------------------------------------------------------------- main

@@ -193,9 +193,17 @@ class Simulator:
         dt split) so a fast collider cannot pass through the surface between two steps."""
         spec = self._contact_spec()
         moved = 0.0
+        surface = None
         for name, c in self.colliders.items():
             p0, _ = self._collider_start.get(name, (c.position, c.orientation))
-            moved = max(moved, float(np.linalg.norm(c.position - p0)))
+            travel = float(np.linalg.norm(c.position - p0))
+            if travel <= self.MAX_COLLIDER_TRAVEL * spec["margin"]:
+                continue
+            # Only a collider whose sweep can reach the body needs sub-steps (they change
+            # the trajectory, so a far-away collider must not trigger them).
+            surface = self.surface_positions() if surface is None else surface
+            if c.signed_distance(surface)[0].min() < travel + spec["margin"]:
+                moved = max(moved, travel)
         n_sub = int(min(self.MAX_SUBSTEPS, max(1, np.ceil(moved / (self.MAX_COLLIDER_TRAVEL * spec["margin"])))))
         if n_sub == 1:
             stats = self.model.step(f_app, self.gravity, contact=spec)

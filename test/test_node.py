@@ -55,7 +55,7 @@ def _collider_scene(tmp_path):
     """The small cantilever with a sphere collider `ball`."""
     raw = read_yaml((Path(__file__).resolve().parents[1] / "msg_scenes" / "cantilever.yaml").read_text())
     raw["name"] = "cantilever_ball"
-    raw["colliders"] = {"ball": {"shape": "sphere", "radius": 0.05}}
+    raw["colliders"] = {"ball": {"shape": "sphere", "radius": 0.05, "position": [0.5, 0.05, 0.5]}}   # clear of the beam
     path = tmp_path / "cantilever_ball.yaml"
     path.write_text(yaml.safe_dump(raw))
     return path
@@ -233,7 +233,9 @@ def test_sphere_pressed_into_block_reports_the_reaction(tmp_path):
     """A collider pose stream presses a sphere into the top of the beam; the collider's
     wrench topic reports an upward reaction of the order of the elastic force."""
     with Launch(tmp_path) as launch:
-        _start_node(launch, scene=str(_collider_scene(tmp_path)), real_time_factor=0.0, start_paused=True)
+        # Real time, so the 90 Hz pose stream and the sim advance together (as fast as
+        # possible, the sim raced ahead of the stream and runs differed).
+        _start_node(launch, scene=str(_collider_scene(tmp_path)), real_time_factor=1.0, start_paused=True)
         probe = launch.probe()
         probe.sub("/mdss/colliders/ball/wrench", "geometry_msgs/msg/WrenchStamped")
         probe.sub("/mdss/contacts", CLOUD)

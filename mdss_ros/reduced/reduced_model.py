@@ -23,6 +23,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
@@ -822,19 +823,31 @@ class ReducedModel:
             t1 = time.perf_counter()
             x = sla.lu_solve(lu, rhs, check_finite=False)
         elif self.F == 0:
-            self.block_solver.factor(A_ss)
-            self._resolve = self.block_solver.solve
+            try:
+                self.block_solver.factor(A_ss)
+                self._resolve = self.block_solver.solve
+            except NotPositiveDefinite:
+                # Large compression can make A indefinite; LU still gives the Newton step
+                # (the stability guard of the verification issue will do better).
+                lu = sla.lu_factor(A_ss, check_finite=False)
+                self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
+                self._indefinite = True
             t1 = time.perf_counter()
-            x = self.block_solver.solve(rhs)
+            x = self._resolve(rhs)
         else:
             cols = self.iface_full_cols
             B = sp.csr_matrix((np.ravel(A_sI), (np.repeat(np.arange(self.S), len(cols)), np.tile(cols, self.S))),
                               shape=(self.S, self.F))
             A = sp.bmat([[sp.csr_matrix(A_ss), B], [B.T, self.ff_pattern.matrix(A_ff)]], format="csr")
-            self.sparse_solver.factor(A)
-            self._resolve = self.sparse_solver.solve
+            try:
+                self.sparse_solver.factor(A)
+                self._resolve = self.sparse_solver.solve
+            except NotPositiveDefinite:
+                lu = spla.splu(A.tocsc())
+                self._resolve = lu.solve
+                self._indefinite = True
             t1 = time.perf_counter()
-            x = self.sparse_solver.solve(rhs)
+            x = self._resolve(rhs)
         t2 = time.perf_counter()
         self.timing["factor_ms"] = self.timing.get("factor_ms", 0.0) + 1e3 * (t1 - t0)
         self.timing["solve_ms"] = self.timing.get("solve_ms", 0.0) + 1e3 * (t2 - t1)
@@ -943,6 +956,7 @@ class ReducedModel:
             tau = np.cross(self.positions_of(loaded) - C, f_ext[loaded]).sum(0)
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
         self._dW = 0.0
+        self._indefinite = False
         base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy(), gm)
         Qn = self.get_Q()
         if gm is not None:
@@ -1027,6 +1041,7 @@ class ReducedModel:
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
                       "angular_momentum_correction": self._dW,
+                      "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
         self.timing = {}
         return self.stats

@@ -1,0 +1,157 @@
+"""The node's recording parameters as real processes: mcap_path (MCAP, log time = sim time)
+and rerun_mode file (.rrd at rerun_path); a SIGKILLed node's file is recoverable; an
+unwritable mcap_path is reported at start and the simulation goes on."""
+import json
+import signal
+import sys
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
+from launch_testing import Launch  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+OVERRIDES = ["body.mesh.cell=0.05", "model.domains.count=2", "model.modes=6"]
+POINTS, WRENCH, CLOCK = "/mdss/surface/points", "/mdss/wrench", "/clock"
+
+
+def _start_node(launch, **params):
+    p = dict(scene="cantilever", scene_overrides=OVERRIDES, diagnostics_rate=5.0)
+    p.update(params)
+    node = launch.node(**p)
+    node.wait_for(r"\] \[mdss\]: ready:", timeout=120)
+    return node
+
+
+def _clock_s(msg):
+    return msg["clock"]["sec"] + 1e-9 * msg["clock"]["nanosec"]
+
+
+def _mcap_ros2_messages(path):
+    """[(topic, log_time, publish_time, decoded)] with mcap's reader and mcap_ros2's decoder."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            out.append((channel.topic, message.log_time, message.publish_time, decoded))
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return out, metadata
+
+
+def _read_torn(path):
+    """Messages of a file without summary, with mcap's StreamReader (CRCs checked)."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap_ros2.decoder import DecoderFactory
+    schemas, channels, out, error = {}, {}, [], None
+    decoders = DecoderFactory()
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f, validate_crcs=True).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    ch = channels[rec.channel_id]
+                    decoded = decoders.decoder_for(ch.message_encoding, schemas[ch.schema_id])(rec.data)
+                    out.append((ch.topic, rec.log_time, rec.publish_time, decoded))
+        except Exception as err:  # noqa: BLE001 - the torn tail
+            error = err
+    return out, error
+
+
+def test_node_records_mcap_and_rrd_and_finishes_on_sigint(tmp_path):
+    mcap, rrd = tmp_path / "run.mcap", tmp_path / "run.rrd"
+    with Launch(tmp_path) as launch:
+        node = _start_node(launch, mcap_path=str(mcap), rerun_mode="file", rerun_path=str(rrd))
+        probe = launch.probe()
+        probe.sub(CLOCK, "rosgraph_msgs/msg/Clock", depth=50)
+        pub = launch.script("publisher", "force_publisher.py", "wrench", "tip", "--force", "0", "0", "-20")
+        assert pub.wait(60) == 0, pub.text
+        probe.diagnostics(where={"inputs_applied": {"ge": 1}}, timeout=30)
+        t_seen = _clock_s(probe.wait(CLOCK, new=True, timeout=30)[-1])
+        assert node.stop(signal.SIGINT) == 0, node.text
+        assert "MCAP: " in node.text and "rerun: " in node.text
+
+    # mcap + mcap_ros2's decoder (summary present: the file was finished)
+    messages, metadata = _mcap_ros2_messages(mcap)
+    counts = Counter(m[0] for m in messages)
+    n_clock = counts[CLOCK]
+    assert n_clock >= 45, counts                                     # >= 0.5 s of sim time at 90 Hz
+    assert counts[POINTS] >= n_clock // 3 - 2 and counts[POINTS] <= n_clock // 3 + 2, counts   # 30 Hz
+    assert counts["/tf"] >= n_clock - 2 and counts["/tf"] <= n_clock + 1, counts          # 90 Hz
+    assert counts["/mdss/surface/topology"] == 1 and counts["/diagnostics"] >= 1, counts
+    assert counts[WRENCH] == 1, counts
+    log_times = [m[1] for m in messages]
+    assert log_times == sorted(log_times)                                        # never decreasing
+    clocks = [m for m in messages if m[0] == CLOCK]
+    for _, log_time, _, msg in clocks:
+        assert msg.clock.sec * 10**9 + msg.clock.nanosec == log_time             # log time = sim time
+    assert clocks[-1][1] * 1e-9 >= t_seen - 1e-9
+    (wrench,) = [m for m in messages if m[0] == WRENCH]
+    assert wrench[3].header.frame_id == "tip" and wrench[3].wrench.force.z == -20.0
+    tf = [m[3] for m in messages if m[0] == "/tf"][-1]
+    assert len(tf.transforms) == 2 and len({t.child_frame_id for t in tf.transforms}) == 2   # one per domain
+    assert all(t.header.frame_id == "world" for t in tf.transforms)
+    run = metadata["mdss_run"]
+    assert run["namespace"] == "/mdss" and json.loads(run["scene_json"])["name"] == "cantilever"
+    assert json.loads(run["rates_json"])["points"] == 30.0
+
+    # rosbags reads it too
+    from rosbags.highlevel import AnyReader
+    with AnyReader([mcap]) as reader:
+        topics = {c.topic for c in reader.connections}
+        assert {POINTS, WRENCH, "/tf", CLOCK} <= topics
+        n = 0
+        for conn, _, raw in reader.messages(connections=[c for c in reader.connections
+                                                         if c.topic in (POINTS, WRENCH, "/tf")]):
+            reader.deserialize(raw, conn.msgtype)
+            n += 1
+        assert n == counts[POINTS] + counts[WRENCH] + counts["/tf"]
+
+    # rerun's reader
+    from rerun.chunk import RrdReader
+    reader = RrdReader(rrd)
+    assert len(reader.recordings()) == 1
+    frames = sum(c.num_rows for c in reader.store().stream()
+                 if c.entity_path == "/world/body/surface" and not c.is_static)
+    assert frames >= n_clock // 3 - 2, frames
+
+
+def test_sigkilled_node_leaves_a_recoverable_mcap(tmp_path):
+    mcap = tmp_path / "killed.mcap"
+    with Launch(tmp_path) as launch:
+        node = _start_node(launch, mcap_path=str(mcap))
+        probe = launch.probe()
+        probe.sub(CLOCK, "rosgraph_msgs/msg/Clock", depth=50)
+        probe.wait(CLOCK, where={"stamp_ge": 2.0}, timeout=30)
+        node.popen.send_signal(signal.SIGKILL)
+        node.wait(30)
+        t_last = max(_clock_s(m) for m in probe.get(CLOCK))
+    messages, error = _read_torn(mcap)
+    counts = Counter(m[0] for m in messages)
+    assert error is not None                                   # no summary/footer: it was killed
+    assert counts[CLOCK] > 90 and counts["/tf"] >= counts[CLOCK] - 2, counts
+    t_file = max(m[1] for m in messages if m[0] == CLOCK) * 1e-9
+    print(f"SIGKILL: last /clock seen {t_last:.3f} s, last recovered {t_file:.3f} s")
+    assert t_last - t_file <= 1.0, (t_last, t_file)
+    from mdss_ros.record import mcap_recorder as mr
+    recovered, info = mr.recover(mcap)
+    assert len(recovered) == len(messages) and not info["complete"]
+
+
+def test_unwritable_mcap_path_is_reported_and_the_node_keeps_stepping(tmp_path):
+    with Launch(tmp_path) as launch:
+        node = _start_node(launch, mcap_path="/proc/x/run.mcap")
+        node.wait_for(r"ERROR.*cannot .*/proc/x.*the simulation goes on", timeout=5)
+        probe = launch.probe()
+        first = float(probe.diagnostics(timeout=30)["steps"])
+        later = float(probe.diagnostics(where={"steps": {"gt": first + 20}}, timeout=30)["steps"])
+        assert later > first
+        assert node.stop() == 0, node.text
