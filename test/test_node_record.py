@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
+from record_helpers import read_torn  # noqa: E402
 from launch_testing import Launch  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -41,29 +42,6 @@ def _mcap_ros2_messages(path):
             out.append((channel.topic, message.log_time, message.publish_time, decoded))
         metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
     return out, metadata
-
-
-def _read_torn(path):
-    """Messages of a file without summary, with mcap's StreamReader (CRCs checked)."""
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap_ros2.decoder import DecoderFactory
-    schemas, channels, out, error = {}, {}, [], None
-    decoders = DecoderFactory()
-    with open(path, "rb") as f:
-        try:
-            for rec in StreamReader(f, validate_crcs=True).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    ch = channels[rec.channel_id]
-                    decoded = decoders.decoder_for(ch.message_encoding, schemas[ch.schema_id])(rec.data)
-                    out.append((ch.topic, rec.log_time, rec.publish_time, decoded))
-        except Exception as err:  # noqa: BLE001 - the torn tail
-            error = err
-    return out, error
 
 
 def test_node_records_mcap_and_rrd_and_finishes_on_sigint(tmp_path):
@@ -134,7 +112,7 @@ def test_sigkilled_node_leaves_a_recoverable_mcap(tmp_path):
         node.popen.send_signal(signal.SIGKILL)
         node.wait(30)
         t_last = max(_clock_s(m) for m in probe.get(CLOCK))
-    messages, error = _read_torn(mcap)
+    messages, error = read_torn(mcap)
     counts = Counter(m[0] for m in messages)
     assert error is not None                                   # no summary/footer: it was killed
     assert counts[CLOCK] > 90 and counts["/tf"] >= counts[CLOCK] - 2, counts

@@ -18,32 +18,12 @@ from pathlib import Path
 
 from mdss_ros.record import mcap_recorder as mr
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from record_helpers import read_torn  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENE = ["cantilever", "--set", "body.mesh.cell=0.05", "--set", "model.domains.count=2",
          "--set", "model.modes=6", "--set", "model.cubature={samples: 0}"]
-
-
-def _read_torn(path):
-    """Messages of a file without summary, with mcap's own StreamReader (CRCs checked)."""
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap_ros2.decoder import DecoderFactory
-    schemas, channels, out, error = {}, {}, [], None
-    decoders = DecoderFactory()
-    with open(path, "rb") as f:
-        try:
-            for rec in StreamReader(f, validate_crcs=True).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                elif isinstance(rec, Message):
-                    ch = channels[rec.channel_id]
-                    decoded = decoders.decoder_for(ch.message_encoding, schemas[ch.schema_id])(rec.data)
-                    out.append((ch.topic, rec.log_time, rec.publish_time, decoded))
-        except Exception as err:  # noqa: BLE001 - the torn tail
-            error = err
-    return out, error
 
 
 def test_sigkill_loses_at_most_about_one_second(tmp_path):
@@ -65,7 +45,7 @@ def test_sigkill_loses_at_most_about_one_second(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    messages, error = _read_torn(path)
+    messages, error = read_torn(path)
     counts = Counter(m[0] for m in messages)
     assert error is not None                                   # no summary/footer: it was killed
     assert counts["/clock"] > 200 and counts["/tf"] >= counts["/clock"] - 1
