@@ -11,20 +11,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
 from record_helpers import read_torn  # noqa: E402
+from test_node import _start_node  # noqa: E402
 from launch_testing import Launch  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-OVERRIDES = ["body.mesh.cell=0.05", "model.domains.count=2", "model.modes=6"]
 POINTS, WRENCH, CLOCK = "/mdss/surface/points", "/mdss/wrench", "/clock"
-
-
-def _start_node(launch, **params):
-    p = dict(scene="cantilever", scene_overrides=OVERRIDES, diagnostics_rate=5.0)
-    p.update(params)
-    node = launch.node(**p)
-    node.wait_for(r"\] \[mdss\]: ready:", timeout=120)
-    return node
 
 
 def _clock_s(msg):
