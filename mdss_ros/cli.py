@@ -133,6 +133,8 @@ def cmd_replay(args):
           f"in {time.perf_counter() - t0:.2f} s")
     if not args.check:
         return 0
+    for topic, (n, why) in res.not_compared.items():
+        print(f"mdss replay: {topic}: {n} recorded message(s) not compared ({why})")
     if res.ok:
         print(f"mdss replay: check passed: {res.compared} recorded output messages reproduced bit for bit")
         return 0

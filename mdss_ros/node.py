@@ -230,6 +230,7 @@ class MdssNode(Node):
         self._window = (time.monotonic(), self.sim.time)
         self._traps = {}
         self._recorder, self._rerun, self._closed = None, None, False
+        self._log_offset = 0.0                # sim time run before the last reset (log time goes on)
         self._topics = Topics(self.get_fully_qualified_name())
         self._open_recording()
 
@@ -582,7 +583,7 @@ class MdssNode(Node):
             self._publish(self.pub_poses, tp.domain_poses, convert.pose_array(t, frame, poses))
             transforms = convert.domain_transforms(t, frame, self.domain_names, poses)
             for msg in transforms:
-                self._publish(self.pub_transforms, self._transforms_topic, msg)
+                self._publish(self.pub_transforms, tp.domain_transforms, msg)
             if self._recorder is not None:
                 self._recorder.write_tf(transforms, self._log_time())
             for c, w in wrenches.items():
@@ -610,6 +611,10 @@ class MdssNode(Node):
                 self._failing = False
 
     def _reset(self):
+        # Recorded as an input, so a replay resets where this run did; log time keeps
+        # counting from here (sim time restarts at 0).
+        self._record(self._topics.reset, Header(stamp=convert.stamp(self.sim.time), frame_id=""))
+        self._log_offset += self.sim.time
         self.sim.reset()
         self._queue.clear()
         self._held.clear()
@@ -622,7 +627,6 @@ class MdssNode(Node):
         """MCAP recorder and rerun logger of mcap_path / rerun_mode; a failure is logged and
         the node goes on without that recording."""
         log = self.get_logger()
-        self._transforms_topic = self._topics.namespace + "/domain_transforms"
         path = self._p("mcap_path")
         if path:
             from .record.mcap_recorder import McapRecorder, RecordingError, bag_paths
@@ -674,6 +678,8 @@ class MdssNode(Node):
             "world_frame": self._p("world_frame"),
             "rates_json": json.dumps(rates),
             "diagnostics_clock": "wall time (the node's /diagnostics)",
+            "wrench_timeout_s": repr(self._p("wrench_timeout_s")),
+            "limits_json": json.dumps(self._limits.__dict__),
             "dt": repr(float(self.sim.dt)),
             "real_time_factor": repr(self._p("real_time_factor")),
             "mdss_ros_version": __version__,
@@ -682,12 +688,12 @@ class MdssNode(Node):
             "platform": platform.platform(),
             "machine": platform.machine(),
             "cache_events_json": "[]",
-            "log_time": "sim time (ns)",
+            "log_time": "sim time (ns) since the start, counting on across resets",
             "publish_time": "wall clock (ns since the epoch) when the message was produced",
         }
 
     def _log_time(self):
-        return int(round(self.sim.time * 1e9))
+        return int(round((self._log_offset + self.sim.time) * 1e9))
 
     def _record(self, topic, msg, type_name=None):
         rec = self._recorder

@@ -11,12 +11,13 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "launch_scripts"))
 from record_helpers import read_torn  # noqa: E402
-from test_node import _start_node  # noqa: E402
+from test_node import _collider_scene, _pose, _start_node, _wrench  # noqa: E402
 from launch_testing import Launch  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
 POINTS, WRENCH, CLOCK = "/mdss/surface/points", "/mdss/wrench", "/clock"
+EMPTY, TRIGGER = "std_srvs/srv/Empty", "std_srvs/srv/Trigger"
 
 
 def _clock_s(msg):
@@ -125,3 +126,42 @@ def test_unwritable_mcap_path_is_reported_and_the_node_keeps_stepping(tmp_path):
         later = float(probe.diagnostics(where={"steps": {"gt": first + 20}}, timeout=30)["steps"])
         assert later > first
         assert node.stop() == 0, node.text
+
+
+def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
+    """A node records a run fed from another process: a wrench that wrench_timeout_s
+    clears, a collider pressed into the beam, ~/clear_forces and ~/reset_simulation.
+    `mdss replay --check` reproduces every output bit for bit; the node's /diagnostics
+    (wall-clock timer) are named as not compared."""
+    from mdss_ros.record.replay import replay
+    mcap = tmp_path / "node.mcap"
+    with Launch(tmp_path) as launch:
+        node = _start_node(launch, scene=str(_collider_scene(tmp_path)), mcap_path=str(mcap),
+                           wrench_timeout_s=0.2, points_publish_rate=90.0, mesh_publish_rate=10.0)
+        probe = launch.probe()
+        probe.sub(CLOCK, "rosgraph_msgs/msg/Clock", depth=50)
+        probe.pub("/mdss/wrench", "geometry_msgs/msg/WrenchStamped", _wrench("tip", (0, 0, -20)))
+        probe.pub("/mdss/colliders/ball/pose", "geometry_msgs/msg/PoseStamped", _pose((0.5, 0.05, 0.12)))
+        probe.diagnostics(where={"inputs_applied": {"ge": 2}}, timeout=30)
+        probe.wait(CLOCK, new=True, timeout=30)
+        probe.call("/mdss/clear_forces", TRIGGER)
+        probe.call("/mdss/reset_simulation", EMPTY)
+        probe.pub("/mdss/wrench", "geometry_msgs/msg/WrenchStamped", _wrench("tip", (0, 5, 0)))
+        probe.diagnostics(where={"inputs_applied": {"ge": 3}}, timeout=30)
+        probe.wait(CLOCK, count=20, new=True, timeout=30)
+        assert node.stop(signal.SIGINT) == 0, node.text
+
+    messages, _ = _mcap_ros2_messages(mcap)
+    counts = Counter(m[0] for m in messages)
+    assert counts["/mdss/reset_simulation/request"] == 1 and counts["/mdss/clear_forces/request"] == 1, counts
+    assert counts["/mdss/domain_transforms"] == 2 * counts["/mdss/domain_poses"], counts
+    assert counts["/mdss/contacts"] > 0, counts                       # the collider did touch
+    log_times = [m[1] for m in messages]
+    assert log_times == sorted(log_times)                             # on across the reset
+
+    res = replay(mcap, check=True)
+    assert res.ok, (res.first_mismatch, res.missing, res.extra)
+    assert res.compared == sum(n for t, n in counts.items() if t not in (
+        "/diagnostics", "/mdss/wrench", "/mdss/colliders/ball/pose", "/mdss/clear_forces/request",
+        "/mdss/reset_simulation/request"))
+    assert res.not_compared["/diagnostics"][0] == counts["/diagnostics"]

@@ -67,6 +67,7 @@ def _expected_counts():
     surface_every = 3            # points at 30 Hz of sim time with dt = 1/90
     n = STEPS + 1
     counts = {"/clock": n, "/mdss/domain_poses": n, "/tf": n, "/mdss/colliders/ball/wrench": n,
+              "/mdss/domain_transforms": 2 * n,                  # one per domain, as the node publishes
               "/mdss/surface/points": STEPS // surface_every + 1, "/mdss/surface/topology": 1,
               "/mdss/surface/marker": STEPS // 9 + 1, "/mdss/surface/mesh": 1, "/diagnostics": 1}
     counts.update(INPUTS)

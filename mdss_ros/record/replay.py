@@ -27,12 +27,14 @@ Replay (`mdss replay LOG.mcap [--scene S] [--check]`):
     result.ok, result.first_mismatch, result.compared, result.mismatches
 
 reads the file once with CRC checks (chunk CRCs, the data-section CRC, the summary CRC),
-builds the scene it holds (or --scene), re-applies the recorded inputs at their stamps
-with the node's rule (an input stamped s goes in before the step that starts at the first
-sim time t with s <= t + dt/2; unstamped inputs at their log time), steps as many times as
-the recording has /clock messages after t = 0, and with check=True compares every
-recorded output message with the replayed one byte for byte (/diagnostics with its wall-
-time values, ros_messages.TIMING_KEYS, blanked). The first mismatch is reported with
+builds the scene it holds (or --scene), re-applies the recorded inputs at their log times
+(the run time at which the run applied them: a node applies a late input after its stamp,
+so the stamp is not enough), with ~/reset_simulation calls (recorded as inputs) resetting
+the simulator where the run did and the node's wrench_timeout_s and input limits taken from
+the metadata, steps until the last recorded /clock, and with check=True compares every
+recorded output message with the replayed one byte for byte (/diagnostics of `mdss run`
+with its wall-time values, ros_messages.TIMING_KEYS, blanked; the node's /diagnostics come
+from a wall-clock timer and are listed as not compared). The first mismatch is reported with
 topic, index, sim time, first differing byte and, for ~/surface/points, the largest
 position difference. Bit-for-bit equality needs the same machine, package versions and
 precompute cache (MDSS_CACHE_DIR): a cache stage rebuilt during replay is reported.
@@ -63,7 +65,8 @@ def _ns(t):
 
 @dataclass
 class Input:
-    due_s: float          # apply before the first step starting at t with due_s <= t + dt/2
+    due_s: float          # apply before the first step starting at run time (time since the
+                          # start, counting on across resets) r with due_s <= r + dt/2
     topic: str
     data: bytes
     event: dict = None    # the timeline event it came from (recording only)
@@ -89,29 +92,38 @@ class Driver:
     """
 
     def __init__(self, sim, inputs, topics, rates, world_frame, emit, emit_inputs=True, rerun=None,
-                 report=None):
+                 report=None, limits=None, wrench_timeout_s=0.0):
         from .ros_messages import InputApplier, SimOutputs
         self.sim = sim
         self.pending = list(inputs)
+        self.offset = 0.0                  # run time at the last reset (sim time restarts at 0)
+        self.wrench_timeout_s = float(wrench_timeout_s)
+        self._held = {}                    # handle -> sim time its wrench was set (the node's rule)
         self.topics = topics
         self.outputs = SimOutputs(sim, topics, world_frame, rates)
         self.emit = emit
         self.emit_inputs = emit_inputs
         self.rerun = rerun
         self.report = report or (lambda text: None)
-        self.applier = InputApplier(sim, topics, world_frame,
+        self.applier = InputApplier(sim, topics, world_frame, limits=limits,
                                     on_collider_pose=rerun.collider_pose if rerun is not None else None)
         self._window = []
         self._window_start = (time.perf_counter(), sim.time)
 
+    @property
+    def run_time(self):
+        """Time since the start of the run, counting on across resets (the log time)."""
+        return self.offset + self.sim.time
+
     def _emit_all(self, outs):
         for out in outs:
-            self.emit(out, _ns(out.stamp_s))
+            self.emit(out, _ns(self.offset + out.stamp_s))
 
     def start(self):
         self._emit_all(self.outputs.topology())
         self._emit_all(self.outputs.state(None))
-        self._emit_diagnostics()
+        if self.outputs.rates.diagnostics > 0:
+            self._emit_diagnostics()
         if self.rerun is not None:
             self.rerun.log_step()
 
@@ -120,19 +132,52 @@ class Driver:
         from .ros_messages import Out, decode_input
         from ..ros.validate import InputRejected
         sim = self.sim
-        limit = sim.time + 0.5 * sim.dt
         applied = []
-        while self.pending and self.pending[0].due_s <= limit:
+        while self.pending and self.pending[0].due_s <= self.run_time + 0.5 * sim.dt:
             item = self.pending.pop(0)
             if self.emit_inputs:
-                self.emit(Out(item.topic, self.topics.type_of(item.topic), item.data, sim.time), _ns(sim.time))
+                self.emit(Out(item.topic, self.topics.type_of(item.topic), item.data, sim.time), _ns(self.run_time))
+            kind = self.topics.kind(item.topic)
+            if kind == "reset":
+                self._reset()
+                applied.append((item, "reset"))
+                continue
             try:
-                desc = self.applier.apply(item.topic, decode_input(self.topics, item.topic, item.data))
+                msg = decode_input(self.topics, item.topic, item.data)
+                desc = self.applier.apply(item.topic, msg)
+                self._hold(kind, msg)
             except InputRejected as err:
                 desc = f"rejected: {err.reason}"
                 self.report(f"t = {sim.time:.6g} s: input on {item.topic} {desc}")
             applied.append((item, desc))
+        self._expire_wrenches()
         return applied
+
+    def _reset(self):
+        """The node's ~/reset_simulation: sim time back to 0, the state at start published."""
+        self.offset += self.sim.time
+        self.sim.reset()
+        self._held.clear()
+        self._emit_all(self.outputs.state(None))
+
+    def _hold(self, kind, msg):
+        """Track held wrenches for wrench_timeout_s, as the node does."""
+        if kind == "clear_forces":
+            self._held.clear()
+        elif kind == "wrench":
+            f, tq = msg.wrench.force, msg.wrench.torque
+            if any((f.x, f.y, f.z, tq.x, tq.y, tq.z)):
+                self._held[msg.header.frame_id] = self.sim.time
+            else:
+                self._held.pop(msg.header.frame_id, None)
+
+    def _expire_wrenches(self):
+        if self.wrench_timeout_s <= 0:
+            return
+        for handle, t_set in list(self._held.items()):
+            if self.sim.time - t_set >= self.wrench_timeout_s - 1e-9:
+                self.sim.set_wrench(handle)
+                del self._held[handle]
 
     def after_step(self, previous_step, step_ms=None):
         """Emit what is due after the step from previous_step (sim.step_count now)."""
@@ -354,7 +399,7 @@ def _digest(topic, data):
     return hashlib.sha256(data).digest()
 
 
-_INPUT_LEAVES = ("/wrench", "/point_forces", "/clear_forces/request", "/pose")
+_INPUT_LEAVES = ("/wrench", "/point_forces", "/clear_forces/request", "/reset_simulation/request", "/pose")
 
 
 def read_recording(path, topics=None):
@@ -363,7 +408,7 @@ def read_recording(path, topics=None):
     from mcap.records import Channel, Footer, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
     from .mcap_recorder import RecordingError, mcap_of
-    from .ros_messages import Topics, input_stamp, decode_input
+    from .ros_messages import Topics, decode_input
     try:
         path = str(mcap_of(path))
     except RecordingError as err:
@@ -406,11 +451,12 @@ def read_recording(path, topics=None):
     for topic, log_time, data in maybe_inputs:
         if topics.is_input(topic):
             try:
-                msg = decode_input(topics, topic, data)
+                decode_input(topics, topic, data)
             except Exception as err:  # noqa: BLE001
                 raise ReplayError(f"{path}: input message on {topic} does not decode: {err}") from err
-            stamp = input_stamp(topics, topic, msg)
-            inputs.append(Input(stamp if stamp > 0 else log_time * 1e-9, topic, data))
+            # Log time is when the run applied it (the node applies a late input later than
+            # its stamp says), so it, not the stamp, says when to apply it again.
+            inputs.append(Input(log_time * 1e-9, topic, data))
             outputs.pop(topic, None)
     return Recording(path, metadata, inputs, outputs,
                      [t for t, _ in outputs.get(topics.clock, [])],
@@ -458,6 +504,7 @@ class ReplayResult:
     extra: dict = field(default_factory=dict)       # topic -> replayed messages not recorded
     first_mismatch: str = None
     warnings: list = field(default_factory=list)
+    not_compared: dict = field(default_factory=dict)   # topic -> (recorded messages, why)
 
     @property
     def ok(self):
@@ -475,8 +522,11 @@ def replay(path, scene=None, overrides=None, check=False, out=print):
     run = run or {}
     topics = Topics(run.get("namespace", "/mdss"))
     world_frame = run.get("world_frame", "world")
+    from ..ros.validate import Limits
     try:
         rates = OutputRates(**json.loads(run["rates_json"])) if "rates_json" in run else OutputRates()
+        limits = Limits(**json.loads(run["limits_json"])) if "limits_json" in run else None
+        wrench_timeout_s = float(run.get("wrench_timeout_s", "0"))
         if scene is None:
             scene = json.loads(run["scene_json"])
     except (KeyError, TypeError, ValueError) as err:
@@ -487,8 +537,15 @@ def replay(path, scene=None, overrides=None, check=False, out=print):
         raise ReplayError(f"{path}: the recorded scene does not build: {err}") from err
     if not rec.clock_times:
         raise ReplayError(f"{path}: no /clock messages: nothing to replay")
-    steps = int(round(rec.clock_times[-1] * 1e-9 / sim.dt))
-    result = ReplayResult(steps=steps, sim_time=0.0, inputs=len(rec.inputs))
+    end_s = rec.clock_times[-1] * 1e-9
+    result = ReplayResult(steps=0, sim_time=0.0, inputs=len(rec.inputs))
+    if run.get("recorder") == "mdss_ros.node":
+        # The node publishes /diagnostics on a wall-clock timer: neither their number nor
+        # their sim times are reproducible, so they are left out of the check.
+        n = len(rec.outputs.pop(topics.diagnostics, []))
+        if n:
+            result.not_compared[topics.diagnostics] = (n, "published on the node's wall-clock timer")
+        rates.diagnostics = 0.0
     rebuilt = [f"{s} ({k})" for s, k, _ in events if k not in ("hit",)]
     if rebuilt and check:
         result.warnings.append("precompute stages not loaded from the cache: " + ", ".join(rebuilt)
@@ -522,12 +579,16 @@ def replay(path, scene=None, overrides=None, check=False, out=print):
                                          + _explain(o.topic, recorded, data, topics))
 
     driver = Driver(sim, rec.inputs, topics, rates, world_frame, compare, emit_inputs=False,
-                    report=lambda text: out(f"  {text}"))
+                    report=lambda text: out(f"  {text}"), limits=limits, wrench_timeout_s=wrench_timeout_s)
     try:
         driver.start()
-        for k in range(steps):
+        while True:
             driver.apply_due()
+            if driver.run_time >= end_s - 0.5 * sim.dt:
+                break
+            k = sim.step_count
             sim.step()
+            result.steps += 1
             driver.after_step(k)
     except (FloatingPointError, ArithmeticError, np.linalg.LinAlgError) as err:
         raise ReplayError(f"{path}: the replay failed at t = {sim.time:.6g} s: {err}") from err

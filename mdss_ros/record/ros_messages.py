@@ -75,12 +75,14 @@ class Topics:
         "wrench": "geometry_msgs/msg/WrenchStamped",
         "point_forces": "sensor_msgs/msg/PointCloud2",
         "clear_forces": "std_msgs/msg/Header",
+        "reset": "std_msgs/msg/Header",
         "collider_pose": "geometry_msgs/msg/PoseStamped",
         "topology": "shape_msgs/msg/Mesh",
         "points": "sensor_msgs/msg/PointCloud2",
         "mesh": "shape_msgs/msg/Mesh",
         "marker": "visualization_msgs/msg/Marker",
         "domain_poses": "geometry_msgs/msg/PoseArray",
+        "domain_transforms": "geometry_msgs/msg/TransformStamped",
         "contacts": "sensor_msgs/msg/PointCloud2",
         "collider_wrench": "geometry_msgs/msg/WrenchStamped",
         "clock": "rosgraph_msgs/msg/Clock",
@@ -90,7 +92,9 @@ class Topics:
     # (depth, latched) per kind, as node.py creates its publishers; tf as tf2_ros does.
     QOS = {"topology": (1, True), "clock": (1, True), "mesh": (2, False), "marker": (2, False),
            "tf": (100, False)}
-    INPUTS = ("wrench", "point_forces", "clear_forces", "collider_pose")
+    # reset: the ~/reset_simulation service call, recorded as a Header stamped with the sim
+    # time it ended, so a replay resets where the run did.
+    INPUTS = ("wrench", "point_forces", "clear_forces", "collider_pose", "reset")
 
     def __init__(self, namespace=NAMESPACE):
         ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
@@ -98,11 +102,13 @@ class Topics:
         self.wrench = f"{ns}/wrench"
         self.point_forces = f"{ns}/point_forces"
         self.clear_forces = f"{ns}/clear_forces/request"
+        self.reset = f"{ns}/reset_simulation/request"
         self.topology = f"{ns}/surface/topology"
         self.points = f"{ns}/surface/points"
         self.mesh = f"{ns}/surface/mesh"
         self.marker = f"{ns}/surface/marker"
         self.domain_poses = f"{ns}/domain_poses"
+        self.domain_transforms = f"{ns}/domain_transforms"
         self.contacts = f"{ns}/contacts"
         self.clock = "/clock"
         self.diagnostics = "/diagnostics"
@@ -116,8 +122,8 @@ class Topics:
 
     def kind(self, topic):
         """The kind of a topic name (a key of TYPES), or None for a topic not of this node."""
-        for k in ("wrench", "point_forces", "clear_forces", "topology", "points", "mesh", "marker",
-                  "domain_poses", "contacts", "clock", "diagnostics", "tf"):
+        for k in ("wrench", "point_forces", "clear_forces", "reset", "topology", "points", "mesh", "marker",
+                  "domain_poses", "domain_transforms", "contacts", "clock", "diagnostics", "tf"):
             if getattr(self, k) == topic:
                 return k
         prefix = f"{self.namespace}/colliders/"
@@ -363,6 +369,7 @@ class SimOutputs:
             _finite("domain poses", poses, t)
             out.append(self._out(tp.domain_poses, convert.pose_array(t, self.frame, poses), t))
             transforms = convert.domain_transforms(t, self.frame, self.domain_names, poses)
+            out.extend(self._out(tp.domain_transforms, msg, t) for msg in transforms)
             out.append(self._out(tp.tf, tf_message_bytes(transforms), t))
             for c in self.colliders:
                 w = sim.collider_wrench(c)
@@ -456,12 +463,12 @@ def event_messages(ev, topics=None, world_frame=WORLD_FRAME):
 
 
 _MSG_CLASS = {"wrench": WrenchStamped, "point_forces": PointCloud2, "clear_forces": Header,
-              "collider_pose": PoseStamped}
+              "collider_pose": PoseStamped, "reset": Header}
 
 
 def input_stamp(topics, topic, msg):
     """Sim time (s) an input is stamped with (0: unstamped)."""
-    stamp = msg.stamp if topics.kind(topic) == "clear_forces" else msg.header.stamp
+    stamp = msg.stamp if topics.kind(topic) in ("clear_forces", "reset") else msg.header.stamp
     return seconds_of(stamp)
 
 
