@@ -232,10 +232,12 @@ class Simulator:
             edges = np.linalg.norm(pos[tri[:, [1, 2, 0]]] - pos[tri], axis=2)
             # Vertices within a surface edge of a collider (predicted) become candidates.
             self._contact_margin = float(edges.mean())
-        spheres = any(c.shape == "sphere" for c in self.colliders.values())
+        # Round colliders press into faces between vertices; boxes and planes are left to
+        # vertex contacts (a box edge can still cut a coarse face between two vertices).
+        round_ = any(c.shape in ("sphere", "capsule") for c in self.colliders.values())
         return {"colliders": list(self.colliders.values()), "vertices": self.body.surface.vertex_ids,
                 "margin": self._contact_margin,
-                "triangles": self.body.surface.triangles if spheres else None}
+                "triangles": self.body.surface.triangles if round_ else None}
 
     def contacts(self):
         """Active contacts of the last step: (k, 10) rows x y z nx ny nz depth fx fy fz

@@ -124,3 +124,53 @@ def test_fast_collider_does_not_tunnel(kind):
                    "continuous collision detection)")
 def test_fast_collider_does_not_tunnel_through_jelly():
     _fast_ball_run("full", check_shadow=True, young=1e4)
+
+
+def test_segment_triangle_closest_pair_matches_dense_sampling():
+    from mdss_ros.contact.unilateral import segment_triangle_closest
+    rng = np.random.default_rng(3)
+    tri = rng.normal(size=(40, 3, 3))
+    tri[:5, :, 2] = 0.0                                  # some faces parallel to the segment below
+    a, b = np.array([-0.7, 0.1, 0.4]), np.array([0.9, -0.2, 0.4])
+    p, d2, bary = segment_triangle_closest(a, b, tri)
+    # Dense reference: 400 segment points x a 60 x 60 barycentric grid per triangle.
+    s = a + np.linspace(0, 1, 400)[:, None] * (b - a)
+    u, v = np.meshgrid(np.linspace(0, 1, 60), np.linspace(0, 1, 60))
+    keep = (u + v) <= 1
+    w = np.stack([1 - u[keep] - v[keep], u[keep], v[keep]], 1)
+    for k in range(len(tri)):
+        pts = w @ tri[k]
+        ref = ((s[:, None, :] - pts[None, :, :]) ** 2).sum(-1).min()
+        q = bary[k] @ tri[k]
+        assert abs(((q - p[k]) ** 2).sum() - d2[k]) < 1e-12
+        assert d2[k] <= ref + 1e-12 and np.sqrt(ref) - np.sqrt(d2[k]) < 0.03    # grid spacing bounds the gap
+
+
+def test_capsule_between_vertices_is_held_by_the_face():
+    """A thin capsule (r = 1 cm) lying across a coarse block (5 cm cells) between two rows
+    of surface vertices, pressed 5 mm below the top: no vertex is near it, so only the
+    capsule-face contacts hold it. The block pushes back and the face stays below it."""
+    c = np.sqrt(0.5)
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"},
+                                  "rod": {"shape": "capsule", "radius": 0.01, "half_height": 0.06,
+                                          "position": [0.0, 0.025, 0.2], "orientation": [0, c, 0, c]}}))
+    sim.step(30)                                         # settle on the floor
+    for k in range(30):
+        sim.set_collider_pose("rod", (0.0, 0.025, 0.1 + 0.01 - 0.015 * (k + 1) / 30), (0, c, 0, c))
+        sim.step()
+    assert sim.collider_wrench("rod")[2] > 0.0
+    assert len(sim.contacts()) > 0
+    # The deformed top face under the rod's axis is below the rod's bottom line.
+    ids = sim.body.surface.vertex_ids
+    tris = sim.body.surface.triangles
+    t = sim.vertex_positions()[ids][tris[np.all(sim.rest_positions()[ids][tris][:, :, 2] > 0.1 - 1e-9, axis=1)]]
+    bottom = sim.colliders["rod"].position[2] - 0.01
+    for px in np.linspace(-0.055, 0.055, 12):
+        # the top triangle straight below (px, 0.025): barycentric of its xy projection
+        e1, e2, r = t[:, 1, :2] - t[:, 0, :2], t[:, 2, :2] - t[:, 0, :2], np.array([px, 0.025]) - t[:, 0, :2]
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        v = (r[:, 0] * e2[:, 1] - r[:, 1] * e2[:, 0]) / det
+        w = (e1[:, 0] * r[:, 1] - e1[:, 1] * r[:, 0]) / det
+        k = np.flatnonzero((v >= -1e-12) & (w >= -1e-12) & (v + w <= 1 + 1e-12))[0]
+        z_face = (1 - v[k] - w[k]) * t[k, 0, 2] + v[k] * t[k, 1, 2] + w[k] * t[k, 2, 2]
+        assert z_face <= bottom + 1e-4, (px, z_face, bottom)

@@ -98,34 +98,112 @@ def contact_wrenches(colliders, points, forces, which):
     return out
 
 
+def _axis(col):
+    """Segment (start (3,), end (3,)) a round collider is the offset of: a sphere's centre
+    twice, a capsule's axis."""
+    half = col.half_height * col.rotation[:, 2] if col.shape == "capsule" else np.zeros(3)
+    return col.position - half, col.position + half
+
+
+def closest_points_on_segment(a, b, p):
+    """Closest points (n, 3) of the segment a-b ((3,) each) to points p (n, 3)."""
+    ab = b - a
+    L2 = float(ab @ ab)
+    if L2 == 0.0:
+        return np.broadcast_to(a, p.shape).copy()
+    t = np.clip((p - a) @ ab / L2, 0.0, 1.0)
+    return a + t[:, None] * ab
+
+
+def _segment_segment(a, d1, c, d2):
+    """Parameters s (T,), t (T,) in [0, 1] of the closest points a + s d1 and c + t d2 of
+    a segment (a, d1 (3,), d1 != 0) and segments (c, d2 (T, 3)); Ericson 5.1.9."""
+    r = a - c
+    A = float(d1 @ d1)
+    E = (d2 * d2).sum(1)
+    f = (d2 * r).sum(1)
+    cc = r @ d1
+    b = d2 @ d1
+    denom = A * E - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 1e-14 * A * np.maximum(E, 1e-300), np.clip((b * f - cc * E) / denom, 0, 1), 0.0)
+        t = np.where(E > 0, (b * s + f) / E, 0.0)
+    low, high = t < 0, t > 1
+    t = np.clip(t, 0, 1)
+    s = np.where(low, np.clip(-cc / A, 0, 1), np.where(high, np.clip((b - cc) / A, 0, 1), s))
+    return s, t
+
+
+def segment_triangle_closest(a, b, tri):
+    """Closest pair between the segment a-b ((3,) each) and each triangle (tri (T, 3, 3)).
+
+    Away from an intersection one point of the pair is a segment end or on a triangle edge,
+    so the pair is the best of: both ends against the triangle, the segment against the
+    three edges. A segment through a triangle gets distance 0.
+    Returns points on the segment (T, 3), squared distances (T,), barycentric (T, 3)."""
+    from ..loads import closest_points_on_triangles
+    T = len(tri)
+    A, B, C = tri[:, 0], tri[:, 1], tri[:, 2]
+    best_d2, best_bary = closest_points_on_triangles(a, A, B, C)
+    best_p = np.broadcast_to(a, (T, 3)).copy()
+    d1 = b - a
+    if not np.any(d1):
+        return best_p, best_d2, best_bary
+    d2_b, bary_b = closest_points_on_triangles(b, A, B, C)
+    better = d2_b < best_d2
+    best_d2[better], best_bary[better], best_p[better] = d2_b[better], bary_b[better], b
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        s, t = _segment_segment(a, d1, tri[:, i], tri[:, j] - tri[:, i])
+        p = a + s[:, None] * d1
+        q = tri[:, i] + t[:, None] * (tri[:, j] - tri[:, i])
+        d2 = ((p - q) ** 2).sum(1)
+        better = d2 < best_d2
+        bary = np.zeros((T, 3))
+        bary[:, i], bary[:, j] = 1 - t, t
+        best_d2[better], best_bary[better], best_p[better] = d2[better], bary[better], p[better]
+    # Segment through the face: the ends on opposite sides and the crossing inside.
+    n = np.cross(B - A, C - A)
+    ha, hb = ((a - A) * n).sum(1), ((b - A) * n).sum(1)
+    cross = (ha * hb < 0)
+    if cross.any():
+        x = a + (ha[cross] / (ha[cross] - hb[cross]))[:, None] * d1
+        d2_x, bary_x = closest_points_on_triangles(x, A[cross], B[cross], C[cross])
+        inside = d2_x < 1e-24
+        rows = np.flatnonzero(cross)[inside]
+        best_d2[rows], best_bary[rows], best_p[rows] = 0.0, bary_x[inside], x[inside]
+    return best_p, best_d2, best_bary
+
+
 def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3):
-    """Sphere colliders against surface triangles, where vertices alone let a sphere slip
-    through a face: the closest point of each nearby triangle to the sphere's centre.
+    """Sphere and capsule colliders against surface triangles, where vertices alone let a
+    round collider slip through a face: the closest point of each nearby triangle to the
+    collider's centre (sphere) or axis (capsule).
 
     positions (S, 3) surface vertices; triangles (T, 3) into them. Returns (tri (k,),
     barycentric (k, 3), collider index (k,), phi (k,), normals (k, 3)); closest points at a
     corner are left to the vertex contacts.
     """
-    from ..loads import closest_points_on_triangles
     out = [], [], [], [], []
+    tri_pos = positions[triangles]
+    centroid = tri_pos.mean(axis=1)
+    reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
     for c_idx, col in enumerate(colliders):
-        if col.shape != "sphere":
+        if col.shape not in ("sphere", "capsule"):
             continue
-        tri_pos = positions[triangles]
+        a, b = _axis(col)
         # Cheap cull by the triangles' bounding spheres.
-        centroid = tri_pos.mean(axis=1)
-        reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
-        near = np.flatnonzero(np.linalg.norm(centroid - col.position, axis=1) < col.radius + margin + reach)
+        gap = np.linalg.norm(centroid - closest_points_on_segment(a, b, centroid), axis=1)
+        near = np.flatnonzero(gap < col.radius + margin + reach)
         if near.size == 0:
             continue
         t = tri_pos[near]
-        d2, bary = closest_points_on_triangles(col.position, t[:, 0], t[:, 1], t[:, 2])
+        centre, d2, bary = segment_triangle_closest(a, b, t)
         dist = np.sqrt(d2)
         keep = (dist < col.radius + margin) & (bary.max(axis=1) < 1.0 - corner) & (dist > 1e-12)
         if not keep.any():
             continue
         q = np.einsum("ki,kij->kj", bary[keep], t[keep])
-        n = (q - col.position) / dist[keep, None]
+        n = (q - centre[keep]) / dist[keep, None]
         out[0].append(near[keep])
         out[1].append(bary[keep])
         out[2].append(np.full(keep.sum(), c_idx))
