@@ -169,7 +169,8 @@ def cache_status(scene, cache=None):
     """{"hit": bool, "path": str, "estimate_s": float or None} for a scene's precompute:
     hit when every stage the scene needs is in the cache. Builds only the mesh."""
     from .body import build_body
-    model = scene["model"]
+    from .scene import model_config
+    model = model_config(scene)
     if model["kind"] != "reduced":
         return {"hit": True, "path": "(a full-space model has no precompute)", "estimate_s": 0.0}
     cache = cache or PrecomputeCache()

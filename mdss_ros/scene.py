@@ -243,3 +243,21 @@ def _check_sections(data, source):
         if ev["topic"] not in ("wrench", "point_force", "collider_pose", "clear_forces"):
             raise SceneError(f"{source}: timeline[{i}].topic: unknown topic {ev['topic']!r} "
                              f"(wrench, point_force, collider_pose, clear_forces)")
+
+
+def model_config(scene):
+    """The `model` section a scene's model is built from: the file's, plus what the scene
+    implies. A collider's `reach` region (the part of the body it can touch) becomes a
+    full-space domain `<collider>_reach` of a reduced model (METHOD.md section 8): contact
+    there is resolved on every vertex, the rest stays reduced. Returns a new dict."""
+    model = copy.deepcopy(scene["model"])
+    if model["kind"] != "reduced":
+        return model
+    reach = {f"{name}_reach": spec["reach"] for name, spec in scene["colliders"].items()
+             if isinstance(spec, dict) and spec.get("reach") is not None}
+    if reach:
+        domains = dict(model.get("domains") or {"count": 1})
+        domains["reach"] = reach
+        model["domains"] = domains
+        model["full_space_domains"] = list(model.get("full_space_domains") or []) + list(reach)
+    return model

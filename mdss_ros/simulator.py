@@ -16,7 +16,8 @@ from .scene import Scene, load_scene
 
 def build_model(scene, body, progress=None, cache=None):
     """The dynamics model of a scene (`model.kind`); progress(msg) hears long build steps."""
-    model = scene["model"]
+    from .scene import model_config
+    model = model_config(scene)
     kind = model["kind"]
     if kind == "full":
         from .fem.full_model import FullSpaceModel

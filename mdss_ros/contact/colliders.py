@@ -8,6 +8,10 @@ A collider is declared in the scene's `colliders` map and posed by the timeline,
       rod:   {shape: capsule, radius: 0.02, half_height: 0.1, orientation: [0, 0, 0, 1]}
       block: {shape: box, half_extents: [0.1, 0.1, 0.05]}
       floor: {shape: plane}                      # the local z = 0 plane, normal +z
+      tool:  {shape: sphere, radius: 0.02, reach: {sphere: {center: [0, 0, 0.1], radius: 0.05}}}
+
+`reach` (optional, a vertex selector) marks the part of the body the collider can touch;
+in a reduced model it becomes a full-space domain `<name>_reach` (scene.model_config).
 
 `signed_distance(points)` returns phi (n,) (negative inside the collider) and the unit
 outward normal of the collider at the closest surface point (n, 3), both in the world

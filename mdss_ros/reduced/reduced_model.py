@@ -290,12 +290,37 @@ class ReducedModel:
             regions = dcfg["regions"]
             labels = partition_from_regions(body.vertices, body.tets, regions)
             names = list(regions) if isinstance(regions, dict) else [f"domain_{i}" for i in range(len(regions))]
-            return labels, names
-        count = dcfg.get("count", 1)
-        if not isinstance(count, int) or count < 1:
-            raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
-        labels = partition_vertices(body.vertices, body.tets, count, seed=int(dcfg.get("seed", 0)))
-        return labels, [f"domain_{i}" for i in range(count)]
+        else:
+            count = dcfg.get("count", 1)
+            if not isinstance(count, int) or count < 1:
+                raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
+            labels = partition_vertices(body.vertices, body.tets, count, seed=int(dcfg.get("seed", 0)))
+            names = [f"domain_{i}" for i in range(count)]
+        return ReducedModel._carve_reach(body, labels, names, dcfg.get("reach") or {})
+
+    @staticmethod
+    def _carve_reach(body, labels, names, reach):
+        """Give the vertices of each reach region (scene.model_config) a domain of their own;
+        domains left empty are dropped. labels (n,) -> (labels, names)."""
+        from ..mesh import select_vertices
+        labels = np.asarray(labels, dtype=np.int64).copy()
+        names = list(names)
+        for name, spec in reach.items():
+            try:
+                ids = select_vertices(body.vertices, spec)
+            except Exception as err:  # noqa: BLE001 - a selector error names the spec
+                raise SceneError(f"colliders.{name[:-len('_reach')]}.reach: {err}") from err
+            if len(ids) == 0:
+                raise SceneError(f"colliders.{name[:-len('_reach')]}.reach: the region selects no vertex "
+                                 f"of the body")
+            labels[ids] = len(names)
+            names.append(name)
+        used = np.unique(labels)
+        if len(used) < len(names):
+            remap = np.full(len(names), -1, dtype=np.int64)
+            remap[used] = np.arange(len(used))
+            labels, names = remap[labels], [names[i] for i in used]
+        return labels, names
 
     @staticmethod
     def _full_space_set(cfg, names):
