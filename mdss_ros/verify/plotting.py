@@ -51,20 +51,33 @@ def energy_curves(runs, path, title=""):
 
 
 def cantilever_errors(rows, path):
-    """|relative error| of tip deflection and first frequency vs DOFs (log-log)."""
+    """|relative error| vs closed forms of tip deflection, gravity sag and first frequency
+    against DOFs (log-log): full-space lines over resolutions, reduced models as markers."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    dofs = [r["dofs"] for r in rows]
-    ax.loglog(dofs, [abs(r["static_rel_error"]) for r in rows], "o-", label="static tip deflection")
-    ax.loglog(dofs, [abs(r["frequency_rel_error"]) for r in rows], "s-", label="first bending frequency")
-    for r in rows:
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    full = [r for r in rows if r.get("kind", "full") == "full"]
+    red = [r for r in rows if r.get("kind") == "reduced"]
+    series = (("static_rel_error", "o", "tab:blue", "static tip deflection"),
+              ("sag_rel_error", "^", "tab:green", "gravity sag"),
+              ("frequency_rel_error", "s", "tab:orange", "first bending frequency"))
+    for key, marker, colour, label in series:
+        if full and key in full[0]:
+            ax.loglog([r["dofs"] for r in full], [abs(r[key]) for r in full], marker + "-", color=colour,
+                      label=f"full FEM: {label}")
+        if red and key in red[0]:
+            ax.loglog([r["dofs"] for r in red], [abs(r[key]) for r in red], marker, color=colour, mfc="none",
+                      ms=9, label=f"reduced: {label}")
+    for r in full:
         ax.annotate(f"cell {r['cell']:.3g}", (r["dofs"], abs(r["static_rel_error"])), fontsize=7,
                     textcoords="offset points", xytext=(4, 4))
+    for r in red:
+        ax.annotate(f"{r['domains']}x{r['modes']}", (r["dofs"], abs(r["static_rel_error"])), fontsize=7,
+                    textcoords="offset points", xytext=(4, -10))
     ax.set_xlabel("DOFs")
     ax.set_ylabel("|relative error| vs closed form")
-    ax.set_title("Full-space cantilever vs Euler-Bernoulli + shear")
+    ax.set_title("Cantilever vs Euler-Bernoulli + shear (reduced: on the cell 0.025 mesh)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
-    ax.legend()
+    ax.legend(fontsize=7)
     return _save(fig, path)
 
 
@@ -168,4 +181,39 @@ def accuracy_cost_vs_error(rows, full_ms, path):
     ax.set_title("Cost vs accuracy")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def modes_errors(rows, mode_labels, path):
+    """Left: |error| of each natural frequency vs the closed form against DOFs (full
+    models, one line per mode). Right: reduced models' frequency error vs full FEM on
+    the same mesh, one group of bars per configuration (log scale)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.6))
+    full = [r for r in rows if r["kind"] == "full"]
+    red = [r for r in rows if r["kind"] == "reduced"]
+    n = len(mode_labels)
+    for i in range(n):
+        axes[0].loglog([r["dofs"] for r in full], [max(abs(r["closed_form_rel_error"][i]), 1e-8) for r in full],
+                       "o-", label=f"f{i + 1}: {mode_labels[i]}")
+    axes[0].set_xlabel("DOFs")
+    axes[0].set_ylabel("|f - f_closed| / f_closed")
+    axes[0].set_title("Full-space FEM vs closed forms (EB bending, St-Venant torsion, axial)")
+    axes[0].grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=7)
+    if red:
+        x = np.arange(len(red))
+        w = 0.8 / n
+        for i in range(n):
+            axes[1].bar(x + (i - (n - 1) / 2) * w, [max(abs(r["vs_full_rel_error"][i]), 1e-8) for r in red], w,
+                        label=f"f{i + 1}")
+        axes[1].set_xticks(x)
+        axes[1].set_xticklabels([f"{r['config'].split(',')[0]}\n{r['dofs']} DOFs" for r in red], fontsize=7)
+        axes[1].set_yscale("log")
+        axes[1].set_ylabel("(f_reduced - f_full) / f_full")
+        axes[1].set_title("Reduced models vs full FEM on the same mesh")
+        axes[1].grid(alpha=0.3, axis="y", which="both")
+        axes[1].legend(fontsize=7, ncol=2)
+    else:
+        axes[1].axis("off")
     return _save(fig, path)
