@@ -33,6 +33,18 @@ def skew_batch(p):
                      np.stack([-p[:, 1], p[:, 0], z], 1)], 1)
 
 
+@njit(cache=True, inline="always")
+def _k_times_j(K_e, e, a, b, J, cols, lb, T):
+    """T (3, s_max) = K_e[e] block (a, b) times J of vertex lb (padding columns zero)."""
+    for i in range(3):
+        for t in range(J.shape[2]):
+            acc = 0.0
+            if cols[lb, t] >= 0:
+                for j in range(3):
+                    acc += K_e[e, 3 * a + i, 3 * b + j] * J[lb, j, t]
+            T[i, t] = acc
+
+
 @njit(cache=True)
 def project_coupling(elem, f_e, K_e, J, cols, is_full, icol, G, A_ss, A_sI):
     """Accumulate J^T f and J^T K J of coupling elements.
@@ -62,14 +74,7 @@ def project_coupling(elem, f_e, K_e, J, cols, is_full, icol, G, A_ss, A_sI):
                 continue            # rows of full-space DOFs: full-full via FEM, full-sub by symmetry
             for b in range(k):
                 lb = elem[e, b]
-                # T = K_ab J_b  (3 x s_max)
-                for i in range(3):
-                    for t in range(s_max):
-                        acc = 0.0
-                        if cols[lb, t] >= 0:
-                            for j in range(3):
-                                acc += K_e[e, 3 * a + i, 3 * b + j] * J[lb, j, t]
-                        T[i, t] = acc
+                _k_times_j(K_e, e, a, b, J, cols, lb, T)
                 for s in range(s_max):
                     row = cols[la, s]
                     if row < 0:
@@ -144,13 +149,7 @@ def project_coupling_left(elem, f_e, K_e, JL, J, cols, G, A_ss):
                     G[c] += JL[e, a, 0, s] * f_e[e, a, 0] + JL[e, a, 1, s] * f_e[e, a, 1] + JL[e, a, 2, s] * f_e[e, a, 2]
             for b in range(k):
                 lb = elem[e, b]
-                for i in range(3):
-                    for t in range(s_max):
-                        acc = 0.0
-                        if cols[lb, t] >= 0:
-                            for j in range(3):
-                                acc += K_e[e, 3 * a + i, 3 * b + j] * J[lb, j, t]
-                        T[i, t] = acc
+                _k_times_j(K_e, e, a, b, J, cols, lb, T)
                 for s in range(s_max):
                     row = cols[la, s]
                     if row < 0:

@@ -685,3 +685,43 @@ __all__ = [
     "partition_vertices",
     "vertex_graph",
 ]
+
+
+def domain_labels(domains_cfg, vertices, tets):
+    """Vertex labels and domain names of a scene's `model.domains`: {count: N[, seed]} or
+    {regions: {name: selector}}, optionally with `reach` {name: selector} regions that get
+    domains of their own, carved out last (scene.model_config puts colliders' reach
+    regions there). Domains left empty by the carving are dropped.
+
+    Returns (labels (n_verts,) int64, names [str])."""
+    dcfg = domains_cfg or {"count": 1}
+    if not isinstance(dcfg, dict):
+        raise SceneError(f"model.domains: expected {{count: N}} or {{regions: ...}}, got {dcfg!r}")
+    if "regions" in dcfg:
+        regions = dcfg["regions"]
+        labels = partition_from_regions(vertices, tets, regions)
+        names = list(regions) if isinstance(regions, dict) else [f"domain_{i}" for i in range(len(regions))]
+    else:
+        count = dcfg.get("count", 1)
+        if not isinstance(count, int) or count < 1:
+            raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
+        labels = partition_vertices(vertices, tets, count, seed=int(dcfg.get("seed", 0)))
+        names = [f"domain_{i}" for i in range(count)]
+    labels = np.asarray(labels, dtype=np.int64).copy()
+    names = list(names)
+    for name, spec in (dcfg.get("reach") or {}).items():
+        where = f"colliders.{name[:-len('_reach')]}.reach" if name.endswith("_reach") else f"model.domains.reach.{name}"
+        try:
+            ids = select_vertices(vertices, spec)
+        except Exception as err:  # noqa: BLE001 - a selector error names the spec
+            raise SceneError(f"{where}: {err}") from err
+        if len(ids) == 0:
+            raise SceneError(f"{where}: the region selects no vertex of the body")
+        labels[ids] = len(names)
+        names.append(name)
+    used = np.unique(labels)
+    if len(used) < len(names):
+        remap = np.full(len(names), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        labels, names = remap[labels], [names[i] for i in used]
+    return labels, names

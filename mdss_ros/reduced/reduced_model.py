@@ -63,7 +63,7 @@ class ReducedModel:
     kind = "reduced"
 
     def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None):
-        from .partition import build_partition, domain_elimination_order
+        from .partition import build_partition, domain_elimination_order, domain_labels
         t_start = time.perf_counter()
         say = progress or (lambda msg: None)
         self.body = body
@@ -88,7 +88,7 @@ class ReducedModel:
             labels, names = hit[0]["labels"], list(hit[1]["names"])
             say(f"cache: bases loaded from {self.cache.path('bases', self.bases_key)}")
         else:
-            labels, names = self._labels(cfg, body)
+            labels, names = domain_labels(cfg.get("domains"), body.vertices, body.tets)
         self.partition = build_partition(tets, labels, names=names)
         part = self.partition
         d = part.n_domains
@@ -280,48 +280,6 @@ class ReducedModel:
         return {"scheme": scheme, "interfaces": infos, "exact_elements": int(len(keep_exact))}
 
     # ------------------------------------------------------------------ setup
-    @staticmethod
-    def _labels(cfg, body):
-        from .partition import partition_from_regions, partition_vertices
-        dcfg = cfg.get("domains") or {"count": 1}
-        if not isinstance(dcfg, dict):
-            raise SceneError(f"model.domains: expected {{count: N}} or {{regions: ...}}, got {dcfg!r}")
-        if "regions" in dcfg:
-            regions = dcfg["regions"]
-            labels = partition_from_regions(body.vertices, body.tets, regions)
-            names = list(regions) if isinstance(regions, dict) else [f"domain_{i}" for i in range(len(regions))]
-        else:
-            count = dcfg.get("count", 1)
-            if not isinstance(count, int) or count < 1:
-                raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
-            labels = partition_vertices(body.vertices, body.tets, count, seed=int(dcfg.get("seed", 0)))
-            names = [f"domain_{i}" for i in range(count)]
-        return ReducedModel._carve_reach(body, labels, names, dcfg.get("reach") or {})
-
-    @staticmethod
-    def _carve_reach(body, labels, names, reach):
-        """Give the vertices of each reach region (scene.model_config) a domain of their own;
-        domains left empty are dropped. labels (n,) -> (labels, names)."""
-        from ..mesh import select_vertices
-        labels = np.asarray(labels, dtype=np.int64).copy()
-        names = list(names)
-        for name, spec in reach.items():
-            try:
-                ids = select_vertices(body.vertices, spec)
-            except Exception as err:  # noqa: BLE001 - a selector error names the spec
-                raise SceneError(f"colliders.{name[:-len('_reach')]}.reach: {err}") from err
-            if len(ids) == 0:
-                raise SceneError(f"colliders.{name[:-len('_reach')]}.reach: the region selects no vertex "
-                                 f"of the body")
-            labels[ids] = len(names)
-            names.append(name)
-        used = np.unique(labels)
-        if len(used) < len(names):
-            remap = np.full(len(names), -1, dtype=np.int64)
-            remap[used] = np.arange(len(used))
-            labels, names = remap[labels], [names[i] for i in used]
-        return labels, names
-
     @staticmethod
     def _full_space_set(cfg, names):
         out = set()
