@@ -208,7 +208,8 @@ def modes_errors(rows, mode_labels, path):
             axes[1].bar(x + (i - (n - 1) / 2) * w, [max(abs(r["vs_full_rel_error"][i]), 1e-8) for r in red], w,
                         label=f"f{i + 1}")
         axes[1].set_xticks(x)
-        axes[1].set_xticklabels([f"{r['config'].split(',')[0]}\n{r['dofs']} DOFs" for r in red], fontsize=7)
+        axes[1].set_xticklabels([f"{r['domains']} x {r['modes']}\n{r['dofs']} DOFs" for r in red], fontsize=7)
+        axes[1].set_xlabel("domains x modes per domain")
         axes[1].set_yscale("log")
         axes[1].set_ylabel("(f_reduced - f_full) / f_full")
         axes[1].set_title("Reduced models vs full FEM on the same mesh")
