@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The README's demo command. Bootstraps the venv, then runs the ROS 2 node on a scene
 # (default: cantilever) with a separate publisher process playing the scene's timeline
-# of forces, and a recorder process writing the node's outputs to a rosbag2 (MCAP).
+# of forces; the node records MCAP (a rosbag2 folder) and a rerun .rrd.
 # The first run builds the scene's precompute (bases, cubature) and caches it.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -10,11 +10,20 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST
 export NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$root/.venv/numba_cache}"
 scene="${1:-cantilever}"
 out="${MDSS_OUT:-$root/out/demo}"
-bag="$out/bag_$(date +%Y%m%d_%H%M%S)"
+stamp="$(date +%Y%m%d_%H%M%S)"
+bag="$out/bag_$stamp"
+rrd="$out/run_$stamp.rrd"
 mkdir -p "$out"
 cd "$root"
-"$py" launch_scripts/run_scene.py "$scene" --record "$bag"
+# The node records every input it applied and every output it published (mcap_path, a
+# rosbag2 folder) and a rerun log (rerun_mode file); the timeline comes from another process.
+"$py" launch_scripts/run_scene.py "$scene" -p "mcap_path:=$bag" -p rerun_mode:=file -p "rerun_path:=$rrd"
 echo
-echo "demo: recorded the node's outputs to $bag (rosbag2, MCAP storage)."
-echo "      Open it with Foxglove Studio, 'ros2 bag info $bag' in a ROS 2 install, or Python:"
-echo "      $py -c \"from rosbags.rosbag2 import Reader; r = Reader('$bag'); r.open(); print({c.topic: c.msgcount for c in r.connections})\""
+echo "demo: the node recorded"
+echo "  $bag   rosbag2 folder (MCAP): every input applied and every output published"
+echo "  $rrd   rerun log: surface mesh coloured by domain, frames, colliders, contacts, plots"
+echo "open them with"
+echo "  rerun viewer:  $root/.venv/bin/rerun $rrd"
+echo "  Foxglove:      File > Open local file > $bag/$(basename "$bag")_0.mcap"
+echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
+echo "  replay:        $root/.venv/bin/mdss replay $bag --check   (headless, compares every output bit for bit)"
