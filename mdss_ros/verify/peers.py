@@ -19,7 +19,9 @@ x, b x h section, its material, clamped at x = 0, gravity along -z):
         for rows on the scene's vertex grid also the RMS surface error vs that FEM state
         (reduced_reports.surface_error: MuJoCo's grid is the same 41 x 5 x 5 lattice);
     cost: median ms per step at the scene's dt under gravity from rest (MuJoCo: mj_step;
-        ours: Simulator.step), measured in the same process, under the same load.
+        ours: Simulator.step), measured in the same process, under the same load: every
+        row once when built, then in `timing_rounds` round-robin passes; the smallest
+        median is kept (step_ms_passes holds them all).
 
 Statics: MuJoCo is stepped with a heavier elastic damping until every velocity is below
 1e-9 (damping does not move the equilibrium); our reduced model is stepped with its dt
@@ -120,11 +122,16 @@ def mujoco_flex_beam(mj, geo, dof, timing_steps=60, warmup=5, settle_damping=0.0
     data = mj.MjData(model)
     mj.mj_forward(model, data)
     X = np.array(data.flexvert_xpos)
-    ms = np.empty(warmup + timing_steps)
-    for k in range(len(ms)):
-        t0 = time.perf_counter()
-        mj.mj_step(model, data)
-        ms[k] = 1e3 * (time.perf_counter() - t0)
+
+    def timer(steps=timing_steps):
+        """Median ms of `steps` mj_step calls (after warm-up), continuing the motion."""
+        ms = np.empty(warmup + steps)
+        for k in range(len(ms)):
+            t0 = time.perf_counter()
+            mj.mj_step(model, data)
+            ms[k] = 1e3 * (time.perf_counter() - t0)
+        return float(np.median(ms[warmup:]))
+    step_ms = timer()
     ok = bool(np.all(np.isfinite(data.qpos)))
     static = mj.MjModel.from_xml_string(flex_beam_xml(geo, dof, settle_damping))
     sd = mj.MjData(static)
@@ -137,8 +144,8 @@ def mujoco_flex_beam(mj, geo, dof, timing_steps=60, warmup=5, settle_damping=0.0
             break
     x = np.array(sd.flexvert_xpos)
     return {"dof": dof, "nv": int(model.nv), "nodes": int(model.nflexnode) or int(model.nflexvert),
-            "step_ms": float(np.median(ms[warmup:])), "finite": ok and bool(np.all(np.isfinite(x))),
-            "X": X, "x": x, "settle_steps": k, "settled": settled}
+            "step_ms": step_ms, "finite": ok and bool(np.all(np.isfinite(x))),
+            "X": X, "x": x, "settle_steps": k, "settled": settled, "timer": timer}
 
 
 class _Positions:
@@ -236,7 +243,7 @@ OURS_FINE = [("mdss reduced: 1 domain, cell/2", {"model.domains": {"count": 1}, 
              ("mdss reduced: scene config, cell/2", {})]
 
 
-def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print, timing_steps=60):
+def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print, timing_steps=60, timing_rounds=3):
     """MuJoCo flex (quadratic, full) vs our full-space FEM and reduced configurations on
     the scene's clamped beam; see the module docstring. Returns a dict with rows, table,
     summary lines and the PNG path (or "skipped" when MuJoCo is missing)."""
@@ -260,7 +267,8 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
     fem_sag = tip_sag(body.vertices, x_fem, geo["L"])
     rows.append({"label": "mdss full FEM (1 Newton it./step)", "who": "mdss", "dofs": int(full.model.n_dofs),
                  "step_ms": median_ms_from_rest(full, max(5, timing_steps // 10)), "sag": fem_sag, "mesh": "scene",
-                 "statics": dict(info, wall_s=time.perf_counter() - t0), "x": x_fem})
+                 "statics": dict(info, wall_s=time.perf_counter() - t0), "x": x_fem,
+                 "_timer": lambda: median_ms_from_rest(full, max(5, timing_steps // 10))})
     log(f"peers: our full FEM static sag {fem_sag:.5g} m ({info['iterations']} Newton iterations, residual "
         f"{info['residual']:.2g}), {rows[-1]['step_ms']:.2f} ms/step")
 
@@ -276,7 +284,7 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
             row = {"label": f"MuJoCo {mj.__version__} flex dof={dof}", "who": "mujoco", "dofs": r["nv"],
                    "nodes": r["nodes"], "step_ms": r["step_ms"], "sag": tip_sag(r["X"], r["x"], geo["L"]),
                    "mesh": "scene" if idx is not None else "own", "settled": r["settled"],
-                   "settle_steps": r["settle_steps"], "finite": r["finite"]}
+                   "settle_steps": r["settle_steps"], "finite": r["finite"], "_timer": r["timer"]}
             if idx is not None:
                 row["x"] = r["x"][idx]
             rows.append(row)
@@ -303,7 +311,7 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
             x = ours_static_sag(sim)
             row = {"label": label, "who": "mdss", "dofs": int(sim.model.n_dofs), "mesh": mesh, "build_s": build_s,
                    "step_ms": median_ms_from_rest(sim, timing_steps), "sag": tip_sag(sim.rest_positions(), x, geo["L"]),
-                   "x": x, "overrides": ov}
+                   "x": x, "overrides": ov, "_timer": (lambda s=sim: median_ms_from_rest(s, timing_steps))}
         except ReportError as err:
             rows.append({"label": label, "who": "mdss", "mesh": mesh, "failed": str(err)})
             log(f"peers: {label}: FAILED: {err}")
@@ -322,6 +330,17 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
         log(f"peers: {label}: {row['dofs']} DOFs, {row['step_ms']:.3f} ms/step, sag {row['sag']:.5g} m "
             f"[{time.perf_counter() - t0:.1f} s]")
 
+    # Round-robin re-timing (alternating order): a load spike from other processes hits
+    # MuJoCo and ours alike; each row keeps the smallest of its pass medians.
+    timed = [r for r in rows if "_timer" in r]
+    for p in range(timing_rounds):
+        for r in (timed if p % 2 == 0 else timed[::-1]):
+            r.setdefault("step_ms_passes", []).append(r["_timer"]())
+    for r in timed:
+        r["step_ms_first"] = r["step_ms"]
+        r["step_ms"] = min(r["step_ms_passes"] + [r["step_ms"]])
+        del r["_timer"]
+    log(f"peers: re-timed every row in {timing_rounds} round-robin passes")
     for row in rows:
         if "failed" in row:
             continue

@@ -159,7 +159,8 @@ def sweep_variants(model, which="sweep"):
     out.append(("3 Newton iterations", "newton", {"model.integrator.newton_iterations": 3}))
     out.append(full)
     # Combinations: the cheap end, the accurate end, and the single-domain fast path.
-    combos = [(f"1 domain, r = {r}", {"model.domains": {"count": 1}, "model.cubature.interface": "exact"}),
+    combos = [(f"1 domain, r = {2 * r}", {"model.domains": {"count": 1}, "model.modes": 2 * r,
+                                         "model.cubature.interface": "exact"}),
               (f"1 domain, r = {max(2, r // 2)}", {"model.domains": {"count": 1}, "model.modes": max(2, r // 2),
                                                     "model.cubature.interface": "exact"}),
               (f"r = {2 * r}, exact cubature", dict(exact_cub, **{"model.modes": 2 * r})),
@@ -462,7 +463,8 @@ def tradeoff_report(scene_src, out, quick=False, settings=None, scene_overrides=
     if cfg["peers"]:
         from .peers import beam_peer_comparison, is_clamped_box_beam
         if is_clamped_box_beam(scene):
-            result["peers"] = beam_peer_comparison(scene_src, base, out, quick=quick, log=log)
+            result["peers"] = beam_peer_comparison(scene_src, base, out, quick=quick, log=log,
+                                                       timing_rounds=int(cfg["timing_rounds"]))
             plots += result["peers"].get("plots", [])
         else:
             result["peers"] = {"skipped": "the peer comparison needs a clamped box beam scene (box mesh, pins)"}
