@@ -426,27 +426,32 @@ def peer_table(rows, ref):
 
 
 def peer_plot(rows, ref, path):
-    """ms/step vs |sag error vs closed form| (log-log), MuJoCo and ours, labelled."""
+    """Two log-log panels, ms/step vs error: |sag error| vs the closed form, and RMS
+    surface error vs our FEM statics on the same grid (rows on that grid only)."""
     from .plotting import _plt, _save
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(9, 5.5))
-    for r in rows:
-        if "failed" in r:
-            continue
-        e = max(100 * abs(r["err_closed_form"]), 1e-3)
-        mj = r["who"] == "mujoco"
-        ax.scatter([r["step_ms"]], [e], marker="s" if mj else "o", s=50,
-                   color="tab:orange" if mj else ("k" if r["label"].startswith("mdss full") else "tab:blue"))
-        ax.annotate(f"{r['label']} ({r['dofs']} DOFs)", (r["step_ms"], e), fontsize=7, textcoords="offset points",
-                    xytext=(4, 3))
-    ax.scatter([], [], marker="s", color="tab:orange", label="MuJoCo flex")
-    ax.scatter([], [], marker="o", color="tab:blue", label="mdss reduced")
-    ax.scatter([], [], marker="o", color="k", label="mdss full-space FEM")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("median ms / step at the scene's dt (measured under load)")
-    ax.set_ylabel("|static gravity sag error| vs closed form (%)")
-    ax.set_title(f"Clamped beam, static sag vs Euler-Bernoulli + shear ({ref:.4f} m)", fontsize=10)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 5.8))
+    panels = [("err_closed_form", f"|static sag error| vs Euler-Bernoulli + shear ({ref:.4f} m), %"),
+              ("rms_rel_vs_fem", "RMS surface error vs our full-space FEM statics, same grid, %")]
+    for ax, (key, ylabel) in zip(axes, panels):
+        for r in rows:
+            if "failed" in r or r.get(key) is None or (key == "rms_rel_vs_fem" and r["label"].startswith("mdss full")):
+                continue
+            e = max(100 * abs(r[key]), 1e-3)
+            mj = r["who"] == "mujoco"
+            colour = "tab:orange" if mj else ("k" if r["label"].startswith("mdss full") else "tab:blue")
+            ax.scatter([r["step_ms"]], [e], marker="s" if mj else "o", s=50, color=colour)
+            short = r["label"].replace("mdss reduced: ", "ours: ").replace("MuJoCo 4.0.0 flex ", "MuJoCo ")
+            ax.annotate(f"{short} ({r['dofs']})", (r["step_ms"], e), fontsize=7, textcoords="offset points",
+                        xytext=(4, 3))
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("median ms / step at the scene's dt (measured under load)")
+        ax.set_ylabel(ylabel, fontsize=9)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].scatter([], [], marker="s", color="tab:orange", label="MuJoCo flex (DOFs)")
+    axes[0].scatter([], [], marker="o", color="tab:blue", label="mdss reduced (DOFs)")
+    axes[0].scatter([], [], marker="o", color="k", label="mdss full-space FEM")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Clamped beam under gravity: static sag, MuJoCo flex vs mdss", fontsize=11)
     return _save(fig, path)
