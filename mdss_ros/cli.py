@@ -302,6 +302,18 @@ def cmd_verify(args):
         raise SystemExit(f"mdss verify: {err}")
 
 
+def cmd_tradeoff(args):
+    """`mdss tradeoff SCENE --out DIR [--quick] [--set KEY=VALUE]`: verify/tradeoff.py."""
+    from .errors import MdssError
+    from .verify.reduced_reports import ReportError
+    from .verify.tradeoff import run_tradeoff
+    try:
+        run_tradeoff(args.scene, args.out, quick=args.quick, sets=_parse_sets(args.set))
+    except (MdssError, ReportError) as err:
+        raise SystemExit(f"mdss tradeoff: {err}")
+    return 0
+
+
 def cmd_precompute(args):
     """Build (or load) a scene's precompute with progress, then summarise the cache."""
     from .errors import MdssError
@@ -387,6 +399,16 @@ def main(argv=None):
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a study setting, e.g. --set horizon=0.5 (one report only)")
     p.set_defaults(func=cmd_verify)
+
+    p = sub.add_parser("tradeoff", help="speed vs accuracy sweep of a scene's model against full-space FEM "
+                                        "(JSON, Pareto PNG, table; MuJoCo flex peers for a clamped beam)")
+    p.add_argument("scene", help="scene file or name in msg_scenes/")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--quick", action="store_true", help="a few configurations over 1 s (the slow test)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="tradeoff.NAME=V changes a study setting (horizon, warmup, probe_every, "
+                        "truth_newton_iterations, truth_tolerance, variants, peers); other keys override the scene")
+    p.set_defaults(func=cmd_tradeoff)
 
     p = sub.add_parser("_bench_fem_one", help=argparse.SUPPRESS)
     p.add_argument("n", type=int)
