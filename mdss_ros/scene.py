@@ -108,6 +108,7 @@ SCHEMA = {
         "full_space_domains": (list, []),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
+        "budget": (_any, {}),
     },
     "initial_velocity": {"linear": (_vec3, [0.0, 0.0, 0.0]), "angular": (_vec3, [0.0, 0.0, 0.0])},
     "gravity": (_vec3, [0.0, 0.0, -9.81]),
@@ -229,6 +230,8 @@ def load_scene(path_or_dict, overrides=None):
 
 
 def _check_sections(data, source):
+    from .budget import check_budget
+    data["model"]["budget"] = check_budget(data["model"]["budget"], source)
     for i, pin in enumerate(data["pins"]):
         if not isinstance(pin, dict):
             raise SceneError(f"{source}: pins[{i}]: expected a region mapping (box, sphere, plane, indices)")

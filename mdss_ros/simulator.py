@@ -42,8 +42,10 @@ class Simulator:
     def __init__(self, scene, overrides=None, progress=None, cache=None):
         if not isinstance(scene, Scene) or overrides:
             scene = load_scene(scene, overrides)
-        self.scene = scene
         t0 = time.perf_counter()
+        from .budget import resolve_budget
+        scene, self.budget = resolve_budget(scene, progress, cache)    # model.budget: probe once, cached
+        self.scene = scene
         self.body = build_body(scene)
         self.model = build_model(scene, self.body, progress, cache)
         self.build_seconds = time.perf_counter() - t0
@@ -259,7 +261,9 @@ class Simulator:
         return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])[name]
 
     def stats(self):
-        return dict(self._stats, kind=self.model.kind, dofs=self.model.n_dofs,
+        extra = {"budget": {k: self.budget[k] for k in ("goal", "target", "met")}
+                 | {"modes": self.budget["chosen"]["modes"]}} if self.budget else {}
+        return dict(self._stats, **extra, kind=self.model.kind, dofs=self.model.n_dofs,
                     domains=len(self.model.domain_poses()),
                     vertices=len(self.body.vertices), tets=len(self.body.tets), time=self.time)
 
