@@ -118,6 +118,18 @@ def mujoco_flex_beam(mj, geo, dof, timing_steps=60, warmup=5, settle_damping=0.0
     Returns {"dof", "nv", "nodes", "step_ms" (median mj_step at the scene dt, elastic damping
     = the scene's Rayleigh beta), "X" (n, 3) rest and "x" (n, 3) static vertex positions,
     "settle_steps", "settled"}."""
+    # MuJoCo's warnings go to its log file in the working directory and to stdout; keep
+    # them with the row instead (the full flex warns that its M + K solve is ill-conditioned).
+    warnings = []
+    previous = mj.get_mju_user_warning()
+    mj.set_mju_user_warning(lambda msg: warnings.append(str(msg)))
+    try:
+        return _flex_beam_run(mj, geo, dof, timing_steps, warmup, settle_damping, settle_max, warnings)
+    finally:
+        mj.set_mju_user_warning(previous)
+
+
+def _flex_beam_run(mj, geo, dof, timing_steps, warmup, settle_damping, settle_max, warnings):
     model = mj.MjModel.from_xml_string(flex_beam_xml(geo, dof, geo["beta"]))
     data = mj.MjData(model)
     mj.mj_forward(model, data)
@@ -145,7 +157,8 @@ def mujoco_flex_beam(mj, geo, dof, timing_steps=60, warmup=5, settle_damping=0.0
     x = np.array(sd.flexvert_xpos)
     return {"dof": dof, "nv": int(model.nv), "nodes": int(model.nflexnode) or int(model.nflexvert),
             "step_ms": step_ms, "finite": ok and bool(np.all(np.isfinite(x))),
-            "X": X, "x": x, "settle_steps": k, "settled": settled, "timer": timer}
+            "X": X, "x": x, "settle_steps": k, "settled": settled, "timer": timer,
+            "warnings": sorted(set(w.split(" Time =")[0] for w in warnings))}
 
 
 class _Positions:
@@ -284,12 +297,14 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
             row = {"label": f"MuJoCo {mj.__version__} flex dof={dof}", "who": "mujoco", "dofs": r["nv"],
                    "nodes": r["nodes"], "step_ms": r["step_ms"], "sag": tip_sag(r["X"], r["x"], geo["L"]),
                    "mesh": "scene" if idx is not None else "own", "settled": r["settled"],
-                   "settle_steps": r["settle_steps"], "finite": r["finite"], "_timer": r["timer"]}
+                   "settle_steps": r["settle_steps"], "finite": r["finite"], "_timer": r["timer"],
+                   "mujoco_warnings": r["warnings"]}
             if idx is not None:
                 row["x"] = r["x"][idx]
             rows.append(row)
             log(f"peers: {row['label']}: {row['dofs']} DOFs, {row['step_ms']:.3f} ms/step, sag {row['sag']:.5g} m "
-                f"(settled: {r['settled']} after {r['settle_steps']} steps)")
+                f"(settled: {r['settled']} after {r['settle_steps']} steps"
+                + (f"; MuJoCo warned: {' | '.join(r['warnings'])[:200]}" if r["warnings"] else "") + ")")
 
     # Our reduced configurations: built as the tradeoff rows are (own cache folder).
     configs = [(lab, ov, "scene") for lab, ov in OURS]
