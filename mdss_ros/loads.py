@@ -2,6 +2,43 @@
 import numpy as np
 
 
+class VertexLoads:
+    """Loads on a few vertices of an n-vertex body, so a step touches only those:
+    ids (k,) unique ascending, forces (k, 3); dense() gives the (n, 3) array."""
+
+    __slots__ = ("ids", "forces", "n")
+
+    def __init__(self, n, parts=()):
+        """parts: iterable of (ids (h,), forces (h, 3)); repeated ids add up."""
+        parts = [(np.asarray(i, dtype=np.int64).reshape(-1), np.asarray(f, dtype=np.float64).reshape(-1, 3))
+                 for i, f in parts]
+        self.n = int(n)
+        if not parts:
+            self.ids, self.forces = np.zeros(0, np.int64), np.zeros((0, 3))
+            return
+        ids = np.concatenate([i for i, _ in parts])
+        f = np.concatenate([f for _, f in parts])
+        self.ids, inv = np.unique(ids, return_inverse=True)
+        self.forces = np.zeros((len(self.ids), 3))
+        np.add.at(self.forces, inv, f)
+
+    def dense(self):
+        out = np.zeros((self.n, 3))
+        out[self.ids] = self.forces
+        return out
+
+    def __add__(self, other):
+        return VertexLoads(self.n, [(self.ids, self.forces), (other.ids, other.forces)])
+
+
+def sparse_loads(f_ext):
+    """(ids (k,), forces (k, 3)) of the loaded vertices of a VertexLoads or an (n, 3) array."""
+    if isinstance(f_ext, VertexLoads):
+        return f_ext.ids, f_ext.forces
+    ids = np.flatnonzero(np.any(f_ext != 0.0, axis=1))
+    return ids, f_ext[ids]
+
+
 def wrench_to_vertex_forces(x, mass, force, torque):
     """Spread a wrench over a set of vertices by mass.
 

@@ -4,6 +4,7 @@ The ground truth every reduced result is measured against.
 """
 import numpy as np
 
+from ..loads import VertexLoads
 from ..rotations import quat_from_matrix
 from .backward_euler import BackwardEuler, NewtonSettings
 from .force_model import FEMForceModel
@@ -46,6 +47,8 @@ class FullSpaceModel:
     def step(self, f_ext, gravity=None, contact=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,);
         contact: see BackwardEuler.step (colliders at their end-of-step poses)."""
+        if isinstance(f_ext, VertexLoads):
+            f_ext = f_ext.dense()            # every vertex is an unknown here anyway
         if gravity is not None:
             f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
         self.x, self.v = self.integrator.step(self.x, self.v, f_ext, contact)

@@ -30,6 +30,7 @@ from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
 from ..fem.elements import TetGeometry, element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
+from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
@@ -155,6 +156,9 @@ class ReducedModel:
             Mf = np.zeros(self.ff_pattern.nnz)
             Mf[self.ff_pattern.diagonal] = np.repeat(self.vertex_mass[full_free], 3)
             self.M_ff = Mf
+            # Mass and axis of each free full-space DOF: gravity on them without an (n, 3) pass.
+            free_dofs = np.flatnonzero(self.ff_pattern.free_dof >= 0)
+            self._ff_mass, self._ff_axis = self.vertex_mass[free_dofs // 3], free_dofs % 3
             self.ff_geom = _subset_geometry(self.geom, self.ff_elements)
             self.n_full_elems = len(full_elems)
         else:
@@ -737,7 +741,7 @@ class ReducedModel:
         about the mass centre.
         """
         Fext = np.zeros(self.n_gen)
-        loaded = np.flatnonzero(np.any(f_ext != 0.0, axis=1))
+        loaded, f_loaded = sparse_loads(f_ext)
         dom_of = self.vertex_domain[loaded]
         g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
         for k, dom in enumerate(self.subspace):
@@ -750,14 +754,16 @@ class ReducedModel:
             if ids.size == 0:
                 continue
             loc = self.vertex_local[ids]
-            fk = f_ext[ids]
+            fk = f_loaded[dom_of == dom.index]
             Fext[o:o + dom.r] += np.einsum("lia,li->a", dom.U3[loc], fk @ R)
             if dom.movable:
                 x = self._domain_world(k, loc, q, frames)
                 Fext[o + dom.r:o + dom.r + 3] += fk.sum(0)
                 Fext[o + dom.r + 3:o + dom.r + 6] = np.cross(x - frames.c[k], fk).sum(0)
         if self.F:
-            Fext[self.S:] = self._full_free(f_ext + self.vertex_mass[:, None] * g)
+            Fext[self.S:] = self._ff_mass * g[self._ff_axis]
+            dof = self.ff_pattern.free_dof[3 * loaded[:, None] + np.arange(3)]     # (k, 3), -1: not full-space
+            Fext[self.S + dof[dof >= 0]] += f_loaded[dof >= 0]
         return Fext
 
     def _mass_blocks(self, frames, predicted=False):
@@ -935,8 +941,8 @@ class ReducedModel:
         if gm is not None:
             C, V, W, L = gm
             # Torque of the loads about the mass centre; uniform gravity has none.
-            loaded = np.flatnonzero(np.any(f_ext != 0.0, axis=1))
-            tau = np.cross(self.positions_of(loaded) - C, f_ext[loaded]).sum(0)
+            loaded, f_loaded = sparse_loads(f_ext)
+            tau = np.cross(self.positions_of(loaded) - C, f_loaded).sum(0)
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
         self._dW = 0.0
         self._indefinite = False
