@@ -108,6 +108,16 @@ SCHEMA = {
         "full_space_domains": (list, []),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
+        # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
+        # a diverging one with more Newton iterations and sub-steps.
+        "guard": {
+            "enabled": (_bool, True),
+            "energy_growth": (_positive, 0.1),
+            "max_speed": (_positive, 1.0e3),
+            "max_substeps": (_posint, 16),
+            "newton_iterations": (_posint, 4),
+            "inversion": (_bool, True),
+        },
     },
     "initial_velocity": {"linear": (_vec3, [0.0, 0.0, 0.0]), "angular": (_vec3, [0.0, 0.0, 0.0])},
     "gravity": (_vec3, [0.0, 0.0, -9.81]),

@@ -368,6 +368,22 @@ class ReducedModel:
         self.stats = {}
         self.contact = None
 
+    def get_state(self):
+        """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
+        full-space x and v, and what the outputs read (last energy, contact, stats).
+        set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
+        return {"q": [qi.copy() for qi in self.q], "qd": [qi.copy() for qi in self.qd],
+                "frames": self.frames.copy(), "x_full": self.x_full.copy(), "v_full": self.v_full.copy(),
+                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats)}
+
+    def set_state(self, state):
+        """Restore a get_state() snapshot."""
+        self.q = [qi.copy() for qi in state["q"]]
+        self.qd = [qi.copy() for qi in state["qd"]]
+        self.frames = state["frames"].copy()
+        self.x_full, self.v_full = state["x_full"].copy(), state["v_full"].copy()
+        self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
+
     @property
     def n_dofs(self):
         return self.n_gen
@@ -984,6 +1000,7 @@ class ReducedModel:
         lam = None
         if contact_rows is not None and self.scheme == "two_step":
             raise SceneError("contact is available with the one-step scheme only")
+        r0 = r_last = 0.0
         if self.scheme == "two_step":
             Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
             iterations = 1
@@ -991,7 +1008,7 @@ class ReducedModel:
             Q = np.zeros_like(Qn)
             iterations, cuts = 0, 0
             r = residual(Q, G)
-            r0 = float(np.linalg.norm(r))
+            r0 = r_last = float(np.linalg.norm(r))
             for it in range(self.newton_iterations):
                 A = self._system(M_ss, K_ss, K_sI, K_ff, D)
                 dQ = self._solve(*A, -r)
@@ -1015,7 +1032,8 @@ class ReducedModel:
                 q, _, frames, x_full, _ = self._predict(Q, base)
                 G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
                 r = residual(Q, G)
-                if float(np.linalg.norm(r)) <= self.tolerance * max(r0, 1e-300):
+                r_last = float(np.linalg.norm(r))
+                if r_last <= self.tolerance * max(r0, 1e-300):
                     break
         q, qd, frames, x_full, v_full = self._predict(Q, base)
         self.q, self.qd, self.frames = q, qd, frames
@@ -1037,7 +1055,9 @@ class ReducedModel:
             self.x_full, self.v_full = x_full, v_full
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
-        self.stats = {"newton_iterations": iterations, "domain_ms": timing["domain_ms"],
+        residual_ratio = r_last / r0 if r0 > 0 else 0.0
+        self.stats = {"newton_iterations": iterations, "residual": residual_ratio,
+                      "domain_ms": timing["domain_ms"],
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
                       "angular_momentum_correction": self._dW,

@@ -1,0 +1,176 @@
+"""The stability guard (mdss_ros/guard.py) and the model state accessors it rolls back with."""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.guard import inverted_tets
+from mdss_ros.precompute import PrecomputeCache
+
+SMALL = {"body.mesh.cell": 0.05, "model.cubature": {"samples": 0, "interface": "exact"}, "model.modes": 6}
+
+
+def _sim(kind, **over):
+    scene = load_scene("cantilever", overrides=dict(SMALL, **{"model.kind": kind}, **over))
+    return Simulator(scene, cache=PrecomputeCache(enabled=False))
+
+
+@pytest.fixture(scope="module", params=["full", "reduced"])
+def sim(request):
+    return _sim(request.param)
+
+
+def _state_arrays(sim):
+    return sim.vertex_positions().copy(), sim.model.vertex_velocities().copy()
+
+
+def test_state_round_trip_restores_and_replays_exactly(sim):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -20.0))
+    sim.step(3)
+    snap = sim.model.get_state()
+    x0, v0 = _state_arrays(sim)
+    sim.step(2)
+    x2, v2 = _state_arrays(sim)
+    assert np.abs(x2 - x0).max() > 1e-6               # the state really moved
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+    np.testing.assert_array_equal(sim.model.vertex_velocities(), v0)
+    sim.guard.invalidate()
+    sim.step(2)                                       # same inputs: same trajectory
+    np.testing.assert_allclose(sim.vertex_positions(), x2, rtol=0, atol=1e-12)
+    # the snapshot is a copy: stepping did not change it
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+
+
+def test_reduced_state_round_trip_of_a_spinning_free_body():
+    sim = Simulator(load_scene("cantilever", overrides=dict(SMALL, **{"model.kind": "reduced", "pins": [],
+                                                                      "initial_velocity.angular": [0.5, 0.0, 3.0]})),
+                    cache=PrecomputeCache(enabled=False))
+    sim.step(3)
+    snap = sim.model.get_state()
+    x0, v0 = _state_arrays(sim)
+    poses = sim.domain_poses().copy()
+    sim.step(3)
+    assert np.abs(sim.domain_poses() - poses).max() > 1e-3
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+    np.testing.assert_array_equal(sim.model.vertex_velocities(), v0)
+    np.testing.assert_array_equal(sim.domain_poses(), poses)
+
+
+def test_stable_run_reports_stable_with_no_recoveries(sim):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    for _ in range(10):
+        sim.step()
+        assert sim.stats()["stability"] == "stable"
+    st = sim.stats()
+    assert st["guard_recoveries"] == st["guard_failures"] == st["guard_degraded"] == 0
+    assert st["guard_substeps"] == 1 and st["guard_attempts"] == 1
+
+
+def _inject(monkeypatch, sim, spoil, times):
+    """Make the model's next `times` steps end in a spoiled state (spoil(model))."""
+    model = sim.model
+    real = model.step
+    calls = {"n": 0}
+
+    def step(*a, **k):
+        out = real(*a, **k)
+        calls["n"] += 1
+        if calls["n"] <= times:
+            spoil(model)
+        return out
+    monkeypatch.setattr(model, "step", step)
+    return calls
+
+
+def _nan(model):
+    if model.kind == "full":
+        model.x = model.x.copy()
+        model.x[5] = np.nan
+    else:
+        model.q[0] = np.full_like(model.q[0], np.nan)
+
+
+def _blow_up(model):
+    if model.kind == "full":
+        model.v = 100.0 * model.v + 1.0
+    else:
+        model.qd = [100.0 * qd + 1.0 for qd in model.qd]
+
+
+@pytest.mark.parametrize("spoil, reason", [(_nan, "non-finite"), (_blow_up, "energy")])
+def test_guard_rolls_back_an_injected_divergence_and_recovers(sim, monkeypatch, spoil, reason):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    sim.step(3)
+    reference = _sim(sim.model.kind)                  # the same run without the injection
+    reference.set_wrench("tip", force=(0, 0, -5.0))
+    reference.step(3)
+    calls = _inject(monkeypatch, sim, spoil, times=1)
+    sim.step()
+    st = sim.stats()
+    assert calls["n"] >= 2                            # rolled back and stepped again
+    assert st["stability"] == "recovered" and reason in st["guard_reason"]
+    assert st["guard_recoveries"] == 1 and "rollback" in st["guard_action"]
+    assert np.all(np.isfinite(sim.vertex_positions()))
+    assert abs(sim.time - 4 * sim.dt) < 1e-12
+    # The retry (more Newton iterations) starts from the rolled-back state: it lands near
+    # the clean one-iteration step, not near the spoiled state.
+    reference.step()
+    assert np.abs(sim.vertex_positions() - reference.vertex_positions()).max() < 1e-3
+    assert sim.energy()["kinetic"] < 10 * reference.energy()["kinetic"] + 1e-6
+
+
+def test_guard_never_lets_a_nan_out_and_keeps_the_last_good_state(sim, monkeypatch):
+    sim.reset()
+    sim.step(2)
+    x_good = sim.vertex_positions().copy()
+    _inject(monkeypatch, sim, _nan, times=10 ** 6)
+    sim.step()
+    st = sim.stats()
+    assert st["stability"] == "failed" and st["guard_failures"] == 1
+    assert st["guard_attempts"] > 3                  # the whole ladder was tried
+    np.testing.assert_array_equal(sim.vertex_positions(), x_good)
+    assert np.all(np.isfinite(sim.surface_positions())) and np.isfinite(sim.energy()["total"])
+    assert sim.step_count == 3                       # time goes on
+    monkeypatch.undo()
+    sim.step()
+    assert sim.stats()["stability"] == "stable" and sim.stats()["guard_failures"] == 1
+
+
+def test_guard_catches_a_solver_error(sim, monkeypatch):
+    sim.reset()
+    model = sim.model
+    real = model.step
+    calls = {"n": 0}
+
+    def step(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise np.linalg.LinAlgError("singular matrix")
+        return real(*a, **k)
+    monkeypatch.setattr(model, "step", step)
+    sim.step()
+    assert sim.stats()["stability"] == "recovered" and sim.stats()["guard_reason"] == "non-finite"
+
+
+def test_guard_off_by_scene_key_and_defaults():
+    scene = load_scene("cantilever")
+    g = scene["model"]["guard"]
+    assert g["enabled"] is True and g["max_substeps"] >= 2 and g["energy_growth"] > 0
+    sim = _sim("full", **{"model.guard.enabled": False})
+    sim.step()
+    assert sim.stats()["stability"] == "unchecked"
+    with pytest.raises(Exception, match="model.guard.max_substeps"):
+        load_scene("cantilever", overrides={"model.guard.max_substeps": 0})
+
+
+def test_inverted_tets_counts_flipped_elements():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1.0]])
+    tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
+    assert inverted_tets(x, tets) == 0
+    x[3, 2] = -0.5                                   # push the apex through the base
+    assert inverted_tets(x, tets) == 1
