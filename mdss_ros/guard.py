@@ -17,14 +17,17 @@ hard signs (the step is rejected):
   * speed       -- a vertex faster than `max_speed` m/s;
 soft signs (a retry is attempted; if none clears them the best finite attempt is kept):
   * inversion   -- more inverted tets (det F <= 0) after the step than before;
-  * newton      -- Newton iterations (newton_iterations > 1) that ended with a larger
-                   residual than they started from.
+  * newton      -- Newton iterations (newton_iterations > 1) whose last residual is more
+                   than NEWTON_DIVERGED x the first.
 
 A rejected step is rolled back to the snapshot taken before it (model state, collider
 sweep bookkeeping) and retried along a ladder of attempts, cheapest first: the same dt
 with `newton_iterations` Newton iterations (backward Euler solved properly instead of
-linearly implicit), then dt split into 2, 4, ... `max_substeps` sub-steps (each checked
-on its own) with those iterations. The first attempt that passes is kept ("recovered").
+linearly implicit), for a reduced model whose fictitious forces are explicit (the papers')
+then also with implicit fictitious forces (ReducedModel.fictitious = "implicit"), then dt
+split into 2, 4, ... `max_substeps` sub-steps (each checked on its own) with all of that.
+The first attempt that passes is kept ("recovered"); soft signs alone stop the ladder at
+SOFT_MAX_SUBSTEPS sub-steps.
 If none passes the hard checks, the state before the step is restored and the step is
 marked "failed": the guard never lets a NaN out. Simulated time still advances (the
 simulation goes on, holding its last good state).
@@ -32,7 +35,8 @@ simulation goes on, holding its last good state).
 Per step the guard reports (merged into Simulator.stats()):
   stability "stable" | "recovered" | "degraded" (soft signs left) | "failed",
   guard_reason (what was detected first), guard_action (what fixed it), guard_attempts,
-  guard_substeps, and running totals guard_recoveries, guard_failures, guard_degraded.
+  guard_substeps, guard_work (work of the loads and contacts over the step, as the model
+  accounts it), and running totals guard_recoveries, guard_failures, guard_degraded.
 """
 from dataclasses import dataclass, field
 
@@ -45,6 +49,9 @@ from .errors import MdssError
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, RuntimeError)
 #: Soft signs alone stop the ladder at this many sub-steps (see StabilityGuard.step).
 SOFT_MAX_SUBSTEPS = 4
+#: Newton "diverged": its last residual is this many times its first (a line search keeps
+#: the incremental potential decreasing, but the residual norm need not fall monotonically).
+NEWTON_DIVERGED = 10.0
 
 
 @dataclass
@@ -54,7 +61,7 @@ class GuardSettings:
     enabled: bool = True
     energy_growth: float = 0.1
     max_speed: float = 1.0e3
-    max_substeps: int = 16
+    max_substeps: int = 64
     newton_iterations: int = 4
     inversion: bool = True
 
@@ -172,7 +179,7 @@ class StabilityGuard:
         if s.inversion and after.inverted > before.inverted:
             out.soft.append("inversion")
         res = model_stats.get("residual") if isinstance(model_stats, dict) else None
-        if model_stats.get("newton_iterations", 1) > 1 and res is not None and not res <= 1.0:
+        if model_stats.get("newton_iterations", 1) > 1 and res is not None and not res <= NEWTON_DIVERGED:
             out.soft.append("newton")
         return out
 
@@ -196,20 +203,23 @@ class StabilityGuard:
         before = self._current(gravity, step_count)
         snap = save()
         newton = s.newton_iterations if s.newton_iterations > _newton_of(self.model) else None
-        ladder = [(1, None)] + ([(1, newton)] if newton else []) + \
-            [(n, newton) for n in _powers_of_two(2, s.max_substeps)]
+        # Reduced models that integrate fictitious forces explicitly get them implicit on retries.
+        implicit = getattr(self.model, "fictitious", None) == "explicit"
+        ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
+            ([(1, newton, True)] if implicit else []) + \
+            [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
         first_reason, best = None, None
-        for attempt, (n_sub, newton) in enumerate(ladder):
+        for attempt, (n_sub, newton, implicit) in enumerate(ladder):
             if attempt:
                 restore(snap)
-            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton)
+            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit)
             stats, verdict, after = result
             if verdict.ok:
                 break
             if first_reason is None:
                 first_reason = ",".join(verdict.hard + verdict.soft)
             if not verdict.hard and (best is None or verdict.inverted < best[1].inverted):
-                best = (attempt, verdict, save(), stats, after)
+                best = (attempt, verdict, save(), stats, after, self._work)
             if not verdict.hard and n_sub >= SOFT_MAX_SUBSTEPS:
                 # Soft signs that survive sub-steps are usually physical (a crushed element):
                 # do not spend the whole ladder on them every step.
@@ -222,20 +232,21 @@ class StabilityGuard:
         if attempt == 0:
             report["stability"] = "stable"
         elif attempt is not None:
-            n_sub, newton = ladder[attempt]
-            report.update(stability="recovered", guard_substeps=n_sub, guard_action=_action(n_sub, newton))
+            n_sub, newton, implicit = ladder[attempt]
+            report.update(stability="recovered", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit))
             self.totals["guard_recoveries"] += 1
         elif best is not None:
             # Soft signs everywhere: keep the finite attempt with the fewest inverted tets.
-            attempt, verdict, state, stats, after = best
+            attempt, verdict, state, stats, after, self._work = best
             restore(state)
-            n_sub, newton = ladder[attempt]
-            report.update(stability="degraded", guard_substeps=n_sub, guard_action=_action(n_sub, newton),
+            n_sub, newton, implicit = ladder[attempt]
+            report.update(stability="degraded", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit),
                           guard_left=",".join(verdict.soft))
             self.totals["guard_degraded"] += 1
         else:
             restore(snap)
             after = before
+            self._work = 0.0
             stats = dict(stats or {})
             report.update(stability="failed", guard_action="rolled back to the last good state")
             self.totals["guard_failures"] += 1
@@ -245,16 +256,21 @@ class StabilityGuard:
                                f"{'; ' + report['guard_action'] if report['guard_action'] else ''})")
         self._cached = (step_count + 1, after)
         report["energy_growth"] = float(verdict.growth) if attempt is not None else float("nan")
+        report["guard_work"] = float(self._work)         # work of loads and contacts over the step
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
 
-    def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton):
-        """Run n_sub sub-steps (optionally with more Newton iterations), judging each.
-        Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
+    def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False):
+        """Run n_sub sub-steps (optionally with more Newton iterations and implicit fictitious
+        forces), judging each. Returns (model stats, Verdict, Measure after) and stops at the
+        first bad sub-step."""
         model = self.model
         restore_newton = _set_newton(model, newton) if newton else None
+        if implicit:
+            model.fictitious = "implicit"
         loaded = np.flatnonzero(np.any(f_app != 0.0, axis=1))
-        stats, verdict, prev = {}, Verdict(), before
+        stats, verdict, prev = {}, Verdict(growth=-np.inf), before
+        self._work = 0.0
         try:
             model.set_dt(dt / n_sub)
             for k in range(1, n_sub + 1):
@@ -268,23 +284,36 @@ class StabilityGuard:
                     self.last_error = f"{type(err).__name__}: {err}"
                     return {"error": self.last_error}, v, prev
                 after = measure(model, self.tets, gravity, self.settings.inversion)
-                work = _work(f_app, loaded, prev, after, getattr(model, "contact", None))
-                verdict = self.judge(prev, after, work, stats, gravity)
-                if verdict.hard or (verdict.soft and k < n_sub):
-                    return stats, verdict, after
+                work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
+                             stats.get("external_work") if isinstance(stats, dict) else None)
+                v = self.judge(prev, after, work, stats, gravity)
+                if v.hard:
+                    return stats, v, after
+                # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
+                verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)), growth=max(verdict.growth, v.growth),
+                                  inverted=v.inverted)
+                self._work += work
                 prev = after
         finally:
             model.set_dt(dt)
             if restore_newton:
                 restore_newton()
+            if implicit:
+                model.fictitious = "explicit"
         return stats, verdict, prev
 
 
-def _work(f_app, loaded, before, after, contact):
+def _work(f_app, loaded, before, after, contact, model_work=None):
     """Work of the applied loads (constant over the step) and of the contact forces on the
-    body over a (sub-)step: sum f . (x_after - x_before)."""
+    body over a (sub-)step. For the loads: the model's own account when it reports one
+    (ReducedModel: dt F_app . Q', its backward-Euler work, which stays right when a frame
+    turns a large angle in one step), else sum f . (x_after - x_before) (= dt f . v' for
+    backward Euler in full space). Contacts: sum f . (x_after - x_before)."""
     with np.errstate(all="ignore"):
-        w = float((f_app[loaded] * (after.x[loaded] - before.x[loaded])).sum()) if len(loaded) else 0.0
+        if model_work is not None:
+            w = float(model_work)
+        else:
+            w = float((f_app[loaded] * (after.x[loaded] - before.x[loaded])).sum()) if len(loaded) else 0.0
         if contact and len(contact.get("vertices", ())):
             ids = np.asarray(contact["vertices"])
             w += float((contact["forces"] * (after.x[ids] - before.x[ids])).sum())
@@ -314,10 +343,12 @@ def _set_newton(model, iterations):
     return undo
 
 
-def _action(n_sub, newton):
+def _action(n_sub, newton, implicit=False):
     parts = []
     if newton:
         parts.append(f"{newton} Newton iterations")
+    if implicit:
+        parts.append("implicit fictitious forces")
     if n_sub > 1:
         parts.append(f"{n_sub} sub-steps")
     return "rollback, " + " x ".join(parts) if parts else "rollback"
