@@ -14,6 +14,10 @@ hard signs (the step is rejected):
                    the applied loads and contact forces over the step:
                    E1 - E0 - W > energy_growth * scale. Backward Euler dissipates, so a
                    step that creates energy is diverging;
+  * energy drift-- a step that creates energy (each under that bound) while the energy
+                   created since the last reset, E - E(0) - W(0..t), exceeds
+                   `energy_growth` x the run's energy scale (max over the run of
+                   E_kin + E_el + |W| + |gravity potential change|): slow pumping;
   * speed       -- a vertex faster than `max_speed` m/s;
 soft signs (a retry is attempted; if none clears them the best finite attempt is kept):
   * inversion   -- more inverted tets (det F <= 0) after the step than before;
@@ -35,7 +39,8 @@ simulation goes on, holding its last good state).
 Per step the guard reports (merged into Simulator.stats()):
   stability "stable" | "recovered" | "degraded" (soft signs left) | "failed",
   guard_reason (what was detected first), guard_action (what fixed it), guard_attempts,
-  guard_substeps, guard_work (work of the loads and contacts over the step, as the model
+  guard_substeps, guard_indefinite_steps (accepted steps whose reduced system matrix was
+  indefinite and solved by LU, see ReducedModel._solve), guard_work (work of the loads and contacts over the step, as the model
   accounts it), and running totals guard_recoveries, guard_failures, guard_degraded.
 """
 from dataclasses import dataclass, field
@@ -144,13 +149,15 @@ class StabilityGuard:
     def reset(self):
         """Forget the cached measurement and the running totals (Simulator.reset)."""
         self.totals = {"guard_recoveries": 0, "guard_failures": 0, "guard_degraded": 0,
-                       "guard_substeps_total": 0}
+                       "guard_substeps_total": 0, "guard_indefinite_steps": 0}
         self.last_event = ""
         self.invalidate()
 
     def invalidate(self):
-        """The state changed outside a step: measure it afresh before the next step."""
+        """The state changed outside a step: measure it afresh before the next step, and
+        start a new energy ledger (E0, work of the loads so far, run energy scale) there."""
         self._cached = None
+        self._ledger = None
 
     def _scale_floor(self, gravity):
         if not hasattr(self, "_floor"):
@@ -173,6 +180,12 @@ class StabilityGuard:
         out.growth = (after.total - before.total - work) / scale
         if out.growth > s.energy_growth:
             out.hard.append("energy")
+        elif out.growth > 0.0 and self._ledger is not None:
+            # Slow creation: each step under the bound, the run's total over it.
+            E0, W, run_scale = self._ledger
+            run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
+            if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
+                out.hard.append("energy drift")
         speed = float(np.sqrt((after.v * after.v).sum(1).max())) if len(after.v) else 0.0
         if speed > s.max_speed:
             out.hard.append("speed")
@@ -186,7 +199,17 @@ class StabilityGuard:
     def _current(self, gravity, step_count):
         if self._cached is None or self._cached[0] != step_count:
             self._cached = (step_count, measure(self.model, self.tets, gravity, self.settings.inversion))
+        if self._ledger is None and self._cached[1].finite:
+            m = self._cached[1]
+            self._G0 = m.gravity
+            self._ledger = (m.total, 0.0, self._run_scale(m, 0.0))
         return self._cached[1]
+
+    def _run_scale(self, m, work):
+        """Energy scale of the run at a state: E_kin + E_el + |work so far| + |gravity potential
+        change| (+ a floor); the run's scale is its maximum so far."""
+        return (m.kinetic + max(m.elastic, 0.0) + abs(work) + abs(m.gravity - self._G0)
+                + self._scale_floor(self._gravity))
 
     def step(self, advance, save, restore, f_app, gravity, step_count):
         """Advance one step of the model's dt through the guard.
@@ -200,6 +223,8 @@ class StabilityGuard:
         if not s.enabled:
             return advance(1, 1), {"stability": "unchecked"}
         dt = self.model.dt
+        self._gravity = gravity
+        self._work = 0.0
         before = self._current(gravity, step_count)
         snap = save()
         newton = s.newton_iterations if s.newton_iterations > _newton_of(self.model) else None
@@ -251,10 +276,18 @@ class StabilityGuard:
             report.update(stability="failed", guard_action="rolled back to the last good state")
             self.totals["guard_failures"] += 1
         self.totals["guard_substeps_total"] += report["guard_substeps"]
+        if report["stability"] != "failed" and isinstance(stats, dict) and stats.get("indefinite_system"):
+            # The reduced solver met an indefinite A and took an LU Newton step; the checks
+            # above accepted its result. Counted so a run shows how often that happened.
+            self.totals["guard_indefinite_steps"] += 1
         if report["stability"] != "stable":
             self.last_event = (f"step {step_count + 1}: {report['stability']} ({report['guard_reason']}"
                                f"{'; ' + report['guard_action'] if report['guard_action'] else ''})")
         self._cached = (step_count + 1, after)
+        if self._ledger is not None and after.finite:
+            E0, W, run_scale = self._ledger
+            W += self._work
+            self._ledger = (E0, W, max(run_scale, self._run_scale(after, W)))
         report["energy_growth"] = float(verdict.growth) if attempt is not None else float("nan")
         report["guard_work"] = float(self._work)         # work of loads and contacts over the step
         report.update(self.totals, guard_last_event=self.last_event)

@@ -876,8 +876,12 @@ class ReducedModel:
                 self.block_solver.factor(A_ss)
                 self._resolve = self.block_solver.solve
             except NotPositiveDefinite:
-                # Large compression can make A indefinite; LU still gives the Newton step
-                # (the stability guard of the verification issue will do better).
+                # Large compression (or a centrifugal stiffness) can make A indefinite; LU
+                # still gives the Newton step of the linearised system. Its result is checked
+                # by the Simulator's stability guard (mdss_ros/guard.py), which rolls the step
+                # back and retries with more Newton iterations and smaller dt (A = M + dt^2 K
+                # is positive definite for small enough dt) if it diverges, and counts the
+                # accepted indefinite steps (stats "guard_indefinite_steps").
                 lu = sla.lu_factor(A_ss, check_finite=False)
                 self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
                 self._indefinite = True
