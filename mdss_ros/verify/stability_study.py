@@ -224,6 +224,17 @@ def summary(rows):
                 lines.append(f"{k:8s} {m:11s} {c['stable']:7d} {c['recovered']:10d} {c['failed']:7d}")
         lines.append(f"{k:8s} {'all':11s} {counts[k]['stable']:7d} {counts[k]['recovered']:10d} "
                      f"{counts[k]['failed']:7d}")
+    for k in KINDS:
+        rec = [r for r in rows if r["kind"] == k and r["status"] == "recovered"]
+        if not rec:
+            continue
+        reasons, actions = Counter(), Counter()
+        for r in rec:
+            reasons.update(r["reasons"])
+            actions.update(r["actions"])
+        lines.append(f"{k}: guard steps in recovered cells, detected: "
+                     + ", ".join(f"{n} x {w or '-'}" for w, n in reasons.most_common()))
+        lines.append(f"{k}: ... fixed by: " + ", ".join(f"{n} x {a}" for a, n in actions.most_common()))
     return {k: dict(v) for k, v in counts.items()}, "\n".join(lines)
 
 
