@@ -313,6 +313,19 @@ def cmd_tradeoff(args):
         raise SystemExit(f"mdss tradeoff: {err}")
     return 0
 
+def cmd_stability(args):
+    """`mdss stability --out DIR [--quick]`: the stability matrix (verify/stability_study.py)."""
+    from .verify.stability_study import KINDS, MATERIALS, run_study
+    kinds = args.kinds.split(",") if args.kinds else None
+    materials = args.materials.split(",") if args.materials else None
+    for given, allowed, what in ((kinds, KINDS, "--kinds"), (materials, MATERIALS, "--materials")):
+        bad = sorted(set(given or []) - set(allowed))
+        if bad:
+            raise SystemExit(f"mdss stability: {what}: unknown {bad} (allowed: {', '.join(allowed)})")
+    report = run_study(args.out, quick=args.quick, kinds=kinds, materials=materials,
+                       log=lambda msg: print(msg, flush=True))
+    return 0 if not any(c.get("failed") for c in report["counts"].values()) else 1
+
 
 def cmd_precompute(args):
     """Build (or load) a scene's precompute with progress, then summarise the cache."""
@@ -409,6 +422,14 @@ def main(argv=None):
                    help="tradeoff.NAME=V changes a study setting (horizon, warmup, probe_every, "
                         "truth_newton_iterations, truth_tolerance, variants, peers); other keys override the scene")
     p.set_defaults(func=cmd_tradeoff)
+
+    p = sub.add_parser("stability", help="stability matrix: material x stiffness x dt x spin x force "
+                                          "(JSON + heat maps into --out)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--quick", action="store_true", help="one-at-a-time cells around the base point, fewer steps")
+    p.add_argument("--kinds", help="comma-separated model kinds (default: full,reduced)")
+    p.add_argument("--materials", help="comma-separated materials (default: stvk,corotated,neohookean)")
+    p.set_defaults(func=cmd_stability)
 
     p = sub.add_parser("_bench_fem_one", help=argparse.SUPPRESS)
     p.add_argument("n", type=int)

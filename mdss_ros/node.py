@@ -21,8 +21,11 @@ mdss_ros.ros.convert), and decides *when*:
   of rate r when floor(k dt r) changed. At real_time_factor 1 that is wall time too; a
   rate >= 1/physics_dt publishes every step, 0 turns an output off. The state at t = 0
   is published at start and after every reset. /diagnostics runs on wall time.
-- Every array is checked before it is published. A non-finite state resets the
-  simulator, is logged, and /diagnostics reports stability "failed".
+- Every step goes through the Simulator's stability guard (mdss_ros/guard.py), which
+  rolls back and retries a diverging step. /diagnostics reports stability "ok",
+  "recovered" (the guard rolled back and retried a step since the last report) or
+  "failed", with the guard's counters. A step the guard could not recover, and any
+  non-finite array about to be published, resets the simulator and is logged.
 """
 import math
 import signal
@@ -225,6 +228,7 @@ class MdssNode(Node):
         self._warned = {}
         self._counts = dict.fromkeys(("received", "applied", "late"), 0)
         self._stability, self._failures, self._last_failure = "ok", 0, ""
+        self._guard_seen = 0                  # guard recoveries already reported
         self._failing = False
         self._step_ms, self._cycle_ms = deque(maxlen=100000), deque(maxlen=100000)
         self._window = (time.monotonic(), self.sim.time)
@@ -536,6 +540,12 @@ class MdssNode(Node):
         except Exception as err:  # a solver failure must not take the node down
             self._fail(f"the step from t = {self.sim.time:.6g} s raised {type(err).__name__}: {err}")
             return
+        st = self.sim.stats()
+        if st.get("stability") == "failed":
+            # The guard kept the last good state; nothing diverged is published.
+            self._fail(f"the step to t = {self.sim.time:.6g} s diverged and could not be recovered "
+                       f"({st.get('guard_reason', '')})")
+            return
         step_ms = 1e3 * (time.perf_counter() - s0)
         self._step_ms.append(step_ms)
         self._publish_state(previous_step=k)
@@ -616,6 +626,7 @@ class MdssNode(Node):
         self._record(self._topics.reset, Header(stamp=convert.stamp(self.sim.time), frame_id=""))
         self._log_offset += self.sim.time
         self.sim.reset()
+        self._guard_seen = 0
         self._queue.clear()
         self._held.clear()
         self._window = (time.monotonic(), self.sim.time)
@@ -804,7 +815,10 @@ class MdssNode(Node):
             self._fail("non-finite energy")
             energy = self.sim.energy()
         stats = self.sim.stats()
-        stability = stats.get("stability", self._stability) if self._stability == "ok" else self._stability
+        recoveries = stats.get("guard_recoveries", 0) + stats.get("guard_degraded", 0)
+        recovered = recoveries > self._guard_seen
+        self._guard_seen = recoveries
+        stability = self._stability if self._stability != "ok" else ("recovered" if recovered else "ok")
         target = self._p("real_time_factor")
         values = {
             "state": "paused" if self._paused else "running",
@@ -824,6 +838,11 @@ class MdssNode(Node):
             "stability": stability,
             "stability_failures": self._failures,
             "last_failure": self._last_failure,
+            "guard": stats.get("stability", "off"),
+            "guard_recoveries": stats.get("guard_recoveries", 0),
+            "guard_degraded": stats.get("guard_degraded", 0),
+            "guard_substeps_total": stats.get("guard_substeps_total", 0),
+            "guard_last_event": stats.get("guard_last_event", ""),
             "dofs": stats.get("dofs", 0),
             "domains": len(self.domain_names),
             "surface_vertices": len(self.surface_ids),
@@ -837,6 +856,8 @@ class MdssNode(Node):
         values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
         if stability == "failed":
             level, message = "error", f"failed: {self._last_failure}"
+        elif stability == "recovered":
+            level, message = "warn", f"recovered: {stats.get('guard_last_event', '')}"
         elif not self._paused and target > 0 and len(steps) and rtf < 0.9 * target:
             level, message = "warn", f"running slower than real_time_factor {target:g}: {rtf:.3g}"
         else:

@@ -103,12 +103,25 @@ SCHEMA = {
             "tolerance": (_positive, 1e-6),
             "line_search": (_bool, True),
             "projection": (_choice("auto", "always", "never"), "auto"),
+            # Reduced model: fictitious forces explicit (the papers') or implicit (Coriolis as
+            # its exact flow, centrifugal stiffness in the system); the guard tries implicit.
+            "fictitious": (_choice("explicit", "implicit"), "explicit"),
         },
         "solver": (_choice("auto", "pardiso", "cholmod", "splu"), "auto"),
         "full_space_domains": (list, []),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
         "budget": (_any, {}),
+        # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
+        # a diverging one with more Newton iterations and sub-steps.
+        "guard": {
+            "enabled": (_bool, True),
+            "energy_growth": (_positive, 0.1),
+            "max_speed": (_positive, 1.0e3),
+            "max_substeps": (_posint, 64),
+            "newton_iterations": (_posint, 4),
+            "inversion": (_bool, True),
+        },
     },
     "initial_velocity": {"linear": (_vec3, [0.0, 0.0, 0.0]), "angular": (_vec3, [0.0, 0.0, 0.0])},
     "gravity": (_vec3, [0.0, 0.0, -9.81]),

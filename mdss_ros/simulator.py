@@ -10,6 +10,7 @@ import numpy as np
 
 from .body import build_body
 from .errors import SceneError
+from .guard import GuardSettings, StabilityGuard
 from .loads import closest_surface_point, wrench_to_vertex_forces
 from .scene import Scene, load_scene
 
@@ -55,6 +56,7 @@ class Simulator:
         self._collider_names = set(self.colliders)
         if hasattr(self.model, "watch"):
             self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
+        self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
         self.reset()
 
     # ----------------------------------------------------------------- state
@@ -74,6 +76,7 @@ class Simulator:
         iv = self.scene["initial_velocity"]
         if any(iv["linear"]) or any(iv["angular"]):
             self.model.set_rigid_velocity(iv["linear"], iv["angular"])
+        self.guard.reset()
         self.time = 0.0
         self.step_count = 0
         self._wrenches = {}
@@ -142,20 +145,51 @@ class Simulator:
 
     # ----------------------------------------------------------------- stepping
     def step(self, n=1):
+        """Advance n steps of dt. Every step goes through the stability guard (mdss_ros.guard):
+        a diverging step is rolled back and retried; if nothing helps the last good state is
+        kept and stats()["stability"] says "failed". Time advances either way."""
         for _ in range(int(n)):
             t0 = time.perf_counter()
             f_app = self.applied_forces()
             t1 = time.perf_counter()
-            if self.colliders:
-                model_stats = self._step_with_colliders(f_app)
-            else:
-                model_stats = self.model.step(f_app, self.gravity)
+            # Collider poses set for the end of this step; guard sub-steps interpolate towards them.
+            self._collider_targets = {name: (c.position.copy(), c.orientation.copy())
+                                      for name, c in self.colliders.items()}
+            self._collider_step_start = dict(self._collider_start)
+            model_stats, report = self.guard.step(lambda k, n_sub: self._advance(f_app, k, n_sub),
+                                                  self._save, self._restore, f_app, self.gravity,
+                                                  self.step_count)
             t2 = time.perf_counter()
             self.time = (self.step_count + 1) * self.dt
             self.step_count += 1
             # A zero-duration force lasts exactly the step it was applied in.
             self._point_forces = [p for p in self._point_forces if p[3] is None or p[3] > self.time + 1e-12]
-            self._stats = dict(model_stats, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
+            self._stats = dict(model_stats, **report, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
+
+    def _advance(self, f_app, k, n_sub):
+        """Sub-step k (1..n_sub) of a step; the model's dt is already dt / n_sub. Colliders
+        move to their pose at k / n_sub of the way from the step's start to its target."""
+        if not self.colliders:
+            return self.model.step(f_app, self.gravity)
+        if n_sub > 1:
+            a = k / n_sub
+            for name, c in self.colliders.items():
+                (p0, q0), (p1, q1) = self._collider_step_start.get(name, self._collider_targets[name]), \
+                    self._collider_targets[name]
+                c.set_pose((1 - a) * p0 + a * p1, (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1))
+        return self._step_with_colliders(f_app)
+
+    def _save(self):
+        """Everything a step changes: the model state and the collider sweep bookkeeping."""
+        return (self.model.get_state(), dict(self._collider_start),
+                {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()})
+
+    def _restore(self, snapshot):
+        state, start, poses = snapshot
+        self.model.set_state(state)
+        self._collider_start = dict(start)
+        for name, (p, q) in poses.items():
+            self.colliders[name].set_pose(p, q)
 
     # ----------------------------------------------------------------- outputs
     def surface_triangles(self):
@@ -208,12 +242,13 @@ class Simulator:
             if c.signed_distance(surface)[0].min() < travel + spec["margin"]:
                 moved = max(moved, travel)
         n_sub = int(min(self.MAX_SUBSTEPS, max(1, np.ceil(moved / (self.MAX_COLLIDER_TRAVEL * spec["margin"])))))
+        dt = self.model.dt                       # the step, or a guard sub-step of it
         if n_sub == 1:
             stats = self.model.step(f_app, self.gravity, contact=spec)
         else:
             targets = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
             starts = {name: self._collider_start.get(name, targets[name]) for name in targets}
-            self.model.set_dt(self._dt / n_sub)
+            self.model.set_dt(dt / n_sub)
             try:
                 for k in range(1, n_sub + 1):
                     a = k / n_sub
@@ -223,7 +258,7 @@ class Simulator:
                         c.set_pose((1 - a) * p0 + a * p1, q)
                     stats = self.model.step(f_app, self.gravity, contact=spec)
             finally:
-                self.model.set_dt(self._dt)
+                self.model.set_dt(dt)
             stats = dict(stats, collider_substeps=n_sub)
         self._collider_start = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
         return stats

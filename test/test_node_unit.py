@@ -113,6 +113,32 @@ def test_non_finite_state_is_never_published_and_resets(node, monkeypatch):
     assert node._stability == "ok"
 
 
+def test_diagnostics_report_a_guard_recovery_then_ok(node, monkeypatch):
+    _clear(node)
+    node.diagnostics()
+    model = node.sim.model
+    real, calls = model.step, {"n": 0}
+
+    def spoiled(*a, **k):                        # the first attempt ends in NaN
+        out = real(*a, **k)
+        calls["n"] += 1
+        if calls["n"] == 1:
+            model.q[0] = np.full_like(model.q[0], np.nan)
+        return out
+    monkeypatch.setattr(model, "step", spoiled)
+    node.advance()
+    monkeypatch.undo()
+    assert node.sim.step_count == 1 and node._stability == "ok"       # recovered: no reset
+    status = node.diagnostics().status[0]
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["stability"] == "recovered" and values["guard"] == "recovered"
+    assert values["guard_recoveries"] == "1" and "non-finite" in values["guard_last_event"]
+    assert status.message.startswith("recovered")
+    node.advance()
+    values = {kv.key: kv.value for kv in node.diagnostics().status[0].values}
+    assert values["stability"] == "ok" and values["guard"] == "stable"
+
+
 def test_wrench_timeout_clears_stale_wrenches(node):
     from rclpy.parameter import Parameter
     _clear(node)

@@ -64,8 +64,20 @@ class FullSpaceModel:
     def positions_of(self, ids):
         return self.x[ids]
 
-    def set_state(self, x, v):
-        """Set positions and velocities (n_verts, 3); pinned vertices keep their rest state."""
+    def get_state(self):
+        """A snapshot of the dynamic state (copies): {"x", "v" (n_verts, 3), "contact"}.
+        set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
+        return {"x": self.x.copy(), "v": self.v.copy(), "contact": self.contact}
+
+    def set_state(self, x, v=None):
+        """Restore a get_state() snapshot (x a dict), or set positions and velocities x, v
+        (n_verts, 3), in which case pinned vertices keep their rest state."""
+        if isinstance(x, dict):
+            self.x, self.v = x["x"].copy(), x["v"].copy()
+            self.contact = x.get("contact")
+            return
+        if v is None:
+            raise ValueError("set_state(x, v): v is missing (or pass a get_state() snapshot)")
         pinned = self.body.pinned
         self.x = np.array(x, dtype=np.float64)
         self.v = np.array(v, dtype=np.float64)

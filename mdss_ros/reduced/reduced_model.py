@@ -76,6 +76,9 @@ class ReducedModel:
         self.newton_iterations = integ["newton_iterations"]
         self.tolerance = integ["tolerance"]
         self.line_search = integ["line_search"]
+        # "explicit" (the papers'), or "implicit": the Coriolis force on the modes as its exact
+        # (norm-preserving) flow and the centrifugal stiffness in the implicit system.
+        self.fictitious = integ.get("fictitious", "explicit")
         X, tets = body.vertices, body.tets
         n = len(X)
         self.geom = tet_geometry(X, tets)
@@ -354,6 +357,22 @@ class ReducedModel:
         self.last = {"elastic": 0.0}
         self.stats = {}
         self.contact = None
+
+    def get_state(self):
+        """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
+        full-space x and v, and what the outputs read (last energy, contact, stats).
+        set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
+        return {"q": [qi.copy() for qi in self.q], "qd": [qi.copy() for qi in self.qd],
+                "frames": self.frames.copy(), "x_full": self.x_full.copy(), "v_full": self.v_full.copy(),
+                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats)}
+
+    def set_state(self, state):
+        """Restore a get_state() snapshot."""
+        self.q = [qi.copy() for qi in state["q"]]
+        self.qd = [qi.copy() for qi in state["qd"]]
+        self.frames = state["frames"].copy()
+        self.x_full, self.v_full = state["x_full"].copy(), state["v_full"].copy()
+        self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
 
     @property
     def n_dofs(self):
@@ -781,9 +800,38 @@ class ReducedModel:
                 M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ dom.inertia(self.q[k]) @ R.T
         return M
 
-    def _explicit_terms(self, frames, q, qd):
+    def _fictitious_matrices(self, frames):
+        """Coriolis C (S, S) and centrifugal stiffness K_cf (S, S) on the q rows, block-diagonal
+        per movable domain at the step start (omega = R^T w): U^T f_fc = C qd + K_cf q + (terms
+        free of q and qd), C[a, b] = 2 W[a, b] . omega (skew, W is antisymmetric in a, b) and
+        K_cf = |omega|^2 I - omega^T B2 omega (symmetric positive semi-definite)."""
+        C = np.zeros((self.S, self.S))
+        Kc = np.zeros((self.S, self.S))
+        for k, dom in enumerate(self.subspace):
+            if not dom.movable:
+                continue
+            o, r = self.sub_offsets[k], dom.r
+            omega = frames.R[k].T @ frames.w[k]
+            t = dom.tensors
+            C[o:o + r, o:o + r] = 2.0 * np.einsum("abk,k->ab", t.W, omega)
+            Kc[o:o + r, o:o + r] = float(omega @ omega) * np.eye(r) - np.einsum("i,abij,j->ab", omega, t.B2, omega)
+        return C, Kc
+
+    def _modal_coriolis_rotate(self, C, Q):
+        """Exact flow of qd' = C qd over dt on the q rows (Mgen is I there): qd <- exp(dt C) qd,
+        a rotation because C is skew, so the Coriolis force does no work, as in the continuum
+        (explicit Euler multiplies |qd| by sqrt(1 + dt^2 |C|^2) per step)."""
+        Q = Q.copy()
+        for k, dom in enumerate(self.subspace):
+            if dom.movable:
+                o, r = self.sub_offsets[k], dom.r
+                Q[o:o + r] = sla.expm(self.dt * C[o:o + r, o:o + r]) @ Q[o:o + r]
+        return Q
+
+    def _explicit_terms(self, frames, q, qd, coriolis=True):
         """Fictitious forces (q rows) at the step start; the gyroscopic term lives in the
-        momentum form of the angular rows (see _mass_blocks)."""
+        momentum form of the angular rows (see _mass_blocks). coriolis=False leaves out the
+        Coriolis term (the implicit treatment rotates qd instead)."""
         F = np.zeros(self.n_gen)
         for k, dom in enumerate(self.subspace):
             if not dom.movable:
@@ -792,7 +840,8 @@ class ReducedModel:
             R = frames.R[k]
             omega = R.T @ frames.w[k]
             alpha = R.T @ (frames.w[k] - frames.w_prev[k]) / self.dt
-            F[o:o + dom.r] = fictitious_forces(dom.tensors, q[k], qd[k], omega, alpha)
+            F[o:o + dom.r] = fictitious_forces(dom.tensors, q[k], qd[k] if coriolis else np.zeros_like(qd[k]),
+                                               omega, alpha)
         return F
 
     # ------------------------------------------------------------------ linear algebra
@@ -816,8 +865,12 @@ class ReducedModel:
                 self.block_solver.factor(A_ss)
                 self._resolve = self.block_solver.solve
             except NotPositiveDefinite:
-                # Large compression can make A indefinite; LU still gives the Newton step
-                # (the stability guard of the verification issue will do better).
+                # Large compression (or a centrifugal stiffness) can make A indefinite; LU
+                # still gives the Newton step of the linearised system. Its result is checked
+                # by the Simulator's stability guard (mdss_ros/guard.py), which rolls the step
+                # back and retries with more Newton iterations and smaller dt (A = M + dt^2 K
+                # is positive definite for small enough dt) if it diverges, and counts the
+                # accepted indefinite steps (stats "guard_indefinite_steps").
                 lu = sla.lu_factor(A_ss, check_finite=False)
                 self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
                 self._indefinite = True
@@ -946,17 +999,29 @@ class ReducedModel:
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
         self._dW = 0.0
         self._indefinite = False
+        # The applied loads as generalised forces at the step start (no gravity: it is a
+        # potential); their work over the step is dt F_app . Q' (reported for the guard).
+        F_app = self._external(f_ext, None, self.frames, self.q)
         base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy(), gm)
         Qn = self.get_Q()
         if gm is not None:
             Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm))
+        implicit = self.fictitious == "implicit"
+        if implicit:
+            coriolis, centrifugal = self._fictitious_matrices(self.frames)
+            Qn = self._modal_coriolis_rotate(coriolis, Qn)
         G, K_ss, K_sI, K_ff, energy, J, x_I = self._evaluate(self.q, self.frames, self.x_full)
         timing = dict(self.timing)
         M_ss = self._mass_blocks(self.frames, predicted=True)
         D = (self.alpha * M_ss + self.beta * K_ss,
              self.beta * K_sI if self.F else None,
              self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
-        Fn = self._external(f_ext, gravity, self.frames, self.q) + self._explicit_terms(self.frames, self.q, self.qd)
+        if implicit:
+            # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
+            # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
+            D = (D[0] - dt * centrifugal,) + D[1:]
+        Fn = self._external(f_ext, gravity, self.frames, self.q) + \
+            self._explicit_terms(self.frames, self.q, self.qd, coriolis=not implicit)
         if gm is not None:
             Fn = Fn + self._global_fictitious(gm)
         Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
@@ -973,6 +1038,7 @@ class ReducedModel:
         lam = None
         if contact_rows is not None and self.scheme == "two_step":
             raise SceneError("contact is available with the one-step scheme only")
+        r0 = r_last = 0.0
         if self.scheme == "two_step":
             Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
             iterations = 1
@@ -980,7 +1046,7 @@ class ReducedModel:
             Q = np.zeros_like(Qn)
             iterations, cuts = 0, 0
             r = residual(Q, G)
-            r0 = float(np.linalg.norm(r))
+            r0 = r_last = float(np.linalg.norm(r))
             for it in range(self.newton_iterations):
                 A = self._system(M_ss, K_ss, K_sI, K_ff, D)
                 dQ = self._solve(*A, -r)
@@ -1004,7 +1070,8 @@ class ReducedModel:
                 q, _, frames, x_full, _ = self._predict(Q, base)
                 G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
                 r = residual(Q, G)
-                if float(np.linalg.norm(r)) <= self.tolerance * max(r0, 1e-300):
+                r_last = float(np.linalg.norm(r))
+                if r_last <= self.tolerance * max(r0, 1e-300):
                     break
         q, qd, frames, x_full, v_full = self._predict(Q, base)
         self.q, self.qd, self.frames = q, qd, frames
@@ -1026,7 +1093,10 @@ class ReducedModel:
             self.x_full, self.v_full = x_full, v_full
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
-        self.stats = {"newton_iterations": iterations, "domain_ms": timing["domain_ms"],
+        residual_ratio = r_last / r0 if r0 > 0 else 0.0
+        external_work = dt * float(F_app @ self.get_Q())
+        self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
+                      "domain_ms": timing["domain_ms"],
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
                       "angular_momentum_correction": self._dW,

@@ -1,0 +1,395 @@
+"""Stability guard: detect a diverging step, roll it back and retry it more carefully.
+
+METHOD.md section 9 lists the known limits of the method: explicit fictitious forces, a
+single Newton iteration, stiff or nearly incompressible materials, fast rotation. Rather
+than make every step expensive, the Simulator steps as configured and this guard checks
+the result. After every step it measures the state and looks for
+
+hard signs (the step is rejected):
+  * non-finite  -- a NaN or Inf in positions, velocities or energy, or a numerical error
+                   raised by the solver (singular or indefinite system, failed SVD);
+  * energy      -- the total energy E = kinetic + elastic + gravity potential grew by more
+                   than `energy_growth` x (E_kin + E_el before, + |work of the inputs|
+                   + |change of gravity potential| + a floor) beyond the work W done by
+                   the applied loads and contact forces over the step:
+                   E1 - E0 - W > energy_growth * scale. Backward Euler dissipates, so a
+                   step that creates energy is diverging;
+  * energy drift-- a step that creates energy (each under that bound) while the energy
+                   created since the last reset, E - E(0) - W(0..t), exceeds
+                   `energy_growth` x the run's energy scale (max over the run of
+                   E_kin + E_el + |W| + |gravity potential change|): slow pumping;
+  * speed       -- a vertex faster than `max_speed` m/s;
+soft signs (a retry is attempted; if none clears them the best finite attempt is kept):
+  * inversion   -- more inverted tets (det F <= 0) after the step than before;
+  * newton      -- Newton iterations (newton_iterations > 1) whose last residual is more
+                   than NEWTON_DIVERGED x the first.
+
+A rejected step is rolled back to the snapshot taken before it (model state, collider
+sweep bookkeeping) and retried along a ladder of attempts, cheapest first: the same dt
+with `newton_iterations` Newton iterations (backward Euler solved properly instead of
+linearly implicit), for a reduced model whose fictitious forces are explicit (the papers')
+then also with implicit fictitious forces (ReducedModel.fictitious = "implicit"), then dt
+split into 2, 4, ... `max_substeps` sub-steps (each checked on its own) with all of that.
+The first attempt that passes is kept ("recovered"); soft signs alone stop the ladder at
+SOFT_MAX_SUBSTEPS sub-steps.
+If none passes the hard checks, the state before the step is restored and the step is
+marked "failed": the guard never lets a NaN out. Simulated time still advances (the
+simulation goes on, holding its last good state).
+
+Per step the guard reports (merged into Simulator.stats()):
+  stability "stable" | "recovered" | "degraded" (soft signs left) | "failed",
+  guard_reason (what was detected first), guard_action (what fixed it), guard_attempts,
+  guard_substeps, guard_indefinite_steps (accepted steps whose reduced system matrix was
+  indefinite and solved by LU, see ReducedModel._solve), guard_work (work of the loads and contacts over the step, as the model
+  accounts it), and running totals guard_recoveries, guard_failures, guard_degraded.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import MdssError
+
+#: Exceptions a diverging step raises (singular or indefinite systems, SVD of NaN,
+#: "array must not contain infs or NaNs"). Configuration errors (MdssError) pass through.
+NUMERICAL_ERRORS = (ArithmeticError, ValueError, RuntimeError)
+#: Soft signs alone stop the ladder at this many sub-steps (see StabilityGuard.step).
+SOFT_MAX_SUBSTEPS = 4
+#: Newton "diverged": its last residual is this many times its first (a line search keeps
+#: the incremental potential decreasing, but the residual norm need not fall monotonically).
+NEWTON_DIVERGED = 10.0
+
+
+@dataclass
+class GuardSettings:
+    """The scene's model.guard section (mdss_ros.scene.SCHEMA holds the defaults)."""
+
+    enabled: bool = True
+    energy_growth: float = 0.1
+    max_speed: float = 1.0e3
+    max_substeps: int = 64
+    newton_iterations: int = 4
+    inversion: bool = True
+
+    @classmethod
+    def from_scene(cls, section):
+        return cls(**{k: section[k] for k in cls.__dataclass_fields__ if k in section})
+
+
+@dataclass
+class Measure:
+    """What the guard reads from a state: x, v (n_verts, 3), energy parts, inverted tets."""
+
+    x: np.ndarray
+    v: np.ndarray
+    kinetic: float
+    elastic: float
+    gravity: float
+    inverted: int
+    finite: bool
+
+    @property
+    def total(self):
+        return self.kinetic + self.elastic + self.gravity
+
+
+def inverted_tets(x, tets):
+    """Number of tets with det(Ds) <= 0 at positions x (n_verts, 3); tets (n_tets, 4) are
+    positively oriented at rest, so this counts inverted (or flat) elements."""
+    p = x[tets]                                       # (n_tets, 4, 3)
+    e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+    det = np.einsum("ij,ij->i", np.cross(e1, e2), e3)
+    return int(np.count_nonzero(~(det > 0.0)))
+
+
+def measure(model, tets, gravity, check_inversion=True):
+    """Measure a model's current state (see Measure). Never raises on NaN."""
+    with np.errstate(all="ignore"):
+        x = np.asarray(model.vertex_positions(), dtype=np.float64)
+        v = np.asarray(model.vertex_velocities(), dtype=np.float64)
+        finite = bool(np.isfinite(x).all() and np.isfinite(v).all())
+        if not finite:
+            return Measure(x, v, np.nan, np.nan, np.nan, len(tets), False)
+        m = model.vertex_mass
+        kinetic = 0.5 * float((m * (v * v).sum(1)).sum())
+        try:
+            elastic = float(model.elastic_energy())
+        except NUMERICAL_ERRORS:
+            elastic = np.nan
+        grav = -float((m * (x @ gravity)).sum())
+        inverted = inverted_tets(x, tets) if check_inversion else 0
+    finite = bool(np.isfinite([kinetic, elastic, grav]).all())
+    return Measure(x, v, kinetic, elastic, grav, inverted, finite)
+
+
+@dataclass
+class Verdict:
+    hard: list = field(default_factory=list)      # reasons the state must be rejected
+    soft: list = field(default_factory=list)      # reasons to try again if possible
+    growth: float = 0.0                           # (E1 - E0 - W) / scale
+    inverted: int = 0
+
+    @property
+    def ok(self):
+        return not self.hard and not self.soft
+
+
+class StabilityGuard:
+    """Checks and retries the steps of one model; see the module docstring.
+
+    model: a FullSpaceModel or ReducedModel (get_state, set_state, set_dt, dt,
+    vertex_positions, vertex_velocities, elastic_energy, vertex_mass); tets (n_tets, 4).
+    """
+
+    def __init__(self, model, tets, settings=None):
+        self.model = model
+        self.tets = np.asarray(tets)
+        self.settings = settings or GuardSettings()
+        self.reset()
+
+    def reset(self):
+        """Forget the cached measurement and the running totals (Simulator.reset)."""
+        self.totals = {"guard_recoveries": 0, "guard_failures": 0, "guard_degraded": 0,
+                       "guard_substeps_total": 0, "guard_indefinite_steps": 0}
+        self.last_event = ""
+        self.invalidate()
+
+    def invalidate(self):
+        """The state changed outside a step: measure it afresh before the next step, and
+        start a new energy ledger (E0, work of the loads so far, run energy scale) there."""
+        self._cached = None
+        self._ledger = None
+
+    def _scale_floor(self, gravity):
+        if not hasattr(self, "_floor"):
+            x0 = self.model.vertex_positions()
+            size = float(np.linalg.norm(x0.max(0) - x0.min(0))) or 1.0
+            mass = float(self.model.vertex_mass.sum())
+            self._floor = 1e-9 * mass * (float(np.linalg.norm(gravity)) + 1.0) * size
+        return self._floor
+
+    def judge(self, before, after, work, model_stats, gravity):
+        """Verdict on a (sub-)step from Measure before to Measure after, with work W of the
+        applied loads and contacts over it and the model's step stats."""
+        s = self.settings
+        out = Verdict(inverted=after.inverted)
+        if not after.finite:
+            out.hard.append("non-finite")
+            return out
+        scale = (before.kinetic + max(before.elastic, 0.0) + abs(work) + abs(after.gravity - before.gravity)
+                 + self._scale_floor(gravity))
+        out.growth = (after.total - before.total - work) / scale
+        if out.growth > s.energy_growth:
+            out.hard.append("energy")
+        elif out.growth > 0.0 and self._ledger is not None:
+            # Slow creation: each step under the bound, the run's total over it.
+            E0, W, run_scale = self._ledger
+            run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
+            if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
+                out.hard.append("energy drift")
+        speed = float(np.sqrt((after.v * after.v).sum(1).max())) if len(after.v) else 0.0
+        if speed > s.max_speed:
+            out.hard.append("speed")
+        if s.inversion and after.inverted > before.inverted:
+            out.soft.append("inversion")
+        res = model_stats.get("residual") if isinstance(model_stats, dict) else None
+        if model_stats.get("newton_iterations", 1) > 1 and res is not None and not res <= NEWTON_DIVERGED:
+            out.soft.append("newton")
+        return out
+
+    def _current(self, gravity, step_count):
+        if self._cached is None or self._cached[0] != step_count:
+            self._cached = (step_count, measure(self.model, self.tets, gravity, self.settings.inversion))
+        if self._ledger is None and self._cached[1].finite:
+            m = self._cached[1]
+            self._G0 = m.gravity
+            self._ledger = (m.total, 0.0, self._run_scale(m, 0.0))
+        return self._cached[1]
+
+    def _run_scale(self, m, work):
+        """Energy scale of the run at a state: E_kin + E_el + |work so far| + |gravity potential
+        change| (+ a floor); the run's scale is its maximum so far."""
+        return (m.kinetic + max(m.elastic, 0.0) + abs(work) + abs(m.gravity - self._G0)
+                + self._scale_floor(self._gravity))
+
+    def step(self, advance, save, restore, f_app, gravity, step_count):
+        """Advance one step of the model's dt through the guard.
+
+        advance(k, n): run sub-step k (1..n) of n with the model's dt already set to dt / n,
+        returning the model's stats; save() -> snapshot and restore(snapshot) cover everything
+        a step changes. f_app (n_verts, 3) are the applied loads (their work is allowed),
+        gravity (3,). Returns (model stats, guard report dict).
+        """
+        s = self.settings
+        if not s.enabled:
+            return advance(1, 1), {"stability": "unchecked"}
+        dt = self.model.dt
+        self._gravity = gravity
+        self._work = 0.0
+        before = self._current(gravity, step_count)
+        snap = save()
+        newton = s.newton_iterations if s.newton_iterations > _newton_of(self.model) else None
+        # Reduced models that integrate fictitious forces explicitly get them implicit on retries.
+        implicit = getattr(self.model, "fictitious", None) == "explicit"
+        ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
+            ([(1, newton, True)] if implicit else []) + \
+            [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
+        first_reason, best = None, None
+        for attempt, (n_sub, newton, implicit) in enumerate(ladder):
+            if attempt:
+                restore(snap)
+            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit)
+            stats, verdict, after = result
+            if verdict.ok:
+                break
+            if first_reason is None:
+                first_reason = ",".join(verdict.hard + verdict.soft)
+            if not verdict.hard and (best is None or verdict.inverted < best[1].inverted):
+                best = (attempt, verdict, save(), stats, after, self._work)
+            if not verdict.hard and n_sub >= SOFT_MAX_SUBSTEPS:
+                # Soft signs that survive sub-steps are usually physical (a crushed element):
+                # do not spend the whole ladder on them every step.
+                attempt = None
+                break
+        else:
+            attempt = None
+        report = {"guard_attempts": (attempt if attempt is not None else len(ladder) - 1) + 1,
+                  "guard_reason": first_reason or "", "guard_substeps": 1, "guard_action": ""}
+        if attempt == 0:
+            report["stability"] = "stable"
+        elif attempt is not None:
+            n_sub, newton, implicit = ladder[attempt]
+            report.update(stability="recovered", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit))
+            self.totals["guard_recoveries"] += 1
+        elif best is not None:
+            # Soft signs everywhere: keep the finite attempt with the fewest inverted tets.
+            attempt, verdict, state, stats, after, self._work = best
+            restore(state)
+            n_sub, newton, implicit = ladder[attempt]
+            report.update(stability="degraded", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit),
+                          guard_left=",".join(verdict.soft))
+            self.totals["guard_degraded"] += 1
+        else:
+            restore(snap)
+            after = before
+            self._work = 0.0
+            stats = dict(stats or {})
+            report.update(stability="failed", guard_action="rolled back to the last good state")
+            self.totals["guard_failures"] += 1
+        self.totals["guard_substeps_total"] += report["guard_substeps"]
+        if report["stability"] != "failed" and isinstance(stats, dict) and stats.get("indefinite_system"):
+            # The reduced solver met an indefinite A and took an LU Newton step; the checks
+            # above accepted its result. Counted so a run shows how often that happened.
+            self.totals["guard_indefinite_steps"] += 1
+        if report["stability"] != "stable":
+            self.last_event = (f"step {step_count + 1}: {report['stability']} ({report['guard_reason']}"
+                               f"{'; ' + report['guard_action'] if report['guard_action'] else ''})")
+        self._cached = (step_count + 1, after)
+        if self._ledger is not None and after.finite:
+            E0, W, run_scale = self._ledger
+            W += self._work
+            self._ledger = (E0, W, max(run_scale, self._run_scale(after, W)))
+        report["energy_growth"] = float(verdict.growth) if attempt is not None else float("nan")
+        report["guard_work"] = float(self._work)         # work of loads and contacts over the step
+        report.update(self.totals, guard_last_event=self.last_event)
+        return stats, report
+
+    def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False):
+        """Run n_sub sub-steps (optionally with more Newton iterations and implicit fictitious
+        forces), judging each. Returns (model stats, Verdict, Measure after) and stops at the
+        first bad sub-step."""
+        model = self.model
+        restore_newton = _set_newton(model, newton) if newton else None
+        if implicit:
+            model.fictitious = "implicit"
+        loaded = np.flatnonzero(np.any(f_app != 0.0, axis=1))
+        stats, verdict, prev = {}, Verdict(growth=-np.inf), before
+        self._work = 0.0
+        try:
+            model.set_dt(dt / n_sub)
+            for k in range(1, n_sub + 1):
+                try:
+                    with np.errstate(all="ignore"):
+                        stats = advance(k, n_sub)
+                except MdssError:
+                    raise
+                except NUMERICAL_ERRORS as err:
+                    v = Verdict(hard=["non-finite"])
+                    self.last_error = f"{type(err).__name__}: {err}"
+                    return {"error": self.last_error}, v, prev
+                after = measure(model, self.tets, gravity, self.settings.inversion)
+                work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
+                             stats.get("external_work") if isinstance(stats, dict) else None)
+                v = self.judge(prev, after, work, stats, gravity)
+                if v.hard:
+                    return stats, v, after
+                # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
+                verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)), growth=max(verdict.growth, v.growth),
+                                  inverted=v.inverted)
+                self._work += work
+                prev = after
+        finally:
+            model.set_dt(dt)
+            if restore_newton:
+                restore_newton()
+            if implicit:
+                model.fictitious = "explicit"
+        return stats, verdict, prev
+
+
+def _work(f_app, loaded, before, after, contact, model_work=None):
+    """Work of the applied loads (constant over the step) and of the contact forces on the
+    body over a (sub-)step. For the loads: the model's own account when it reports one
+    (ReducedModel: dt F_app . Q', its backward-Euler work, which stays right when a frame
+    turns a large angle in one step), else sum f . (x_after - x_before) (= dt f . v' for
+    backward Euler in full space). Contacts: sum f . (x_after - x_before)."""
+    with np.errstate(all="ignore"):
+        if model_work is not None:
+            w = float(model_work)
+        else:
+            w = float((f_app[loaded] * (after.x[loaded] - before.x[loaded])).sum()) if len(loaded) else 0.0
+        if contact and len(contact.get("vertices", ())):
+            ids = np.asarray(contact["vertices"])
+            w += float((contact["forces"] * (after.x[ids] - before.x[ids])).sum())
+    return w
+
+
+def _newton_of(model):
+    """The model's configured Newton iterations per step."""
+    return model.integrator.settings.max_iterations if hasattr(model, "integrator") else model.newton_iterations
+
+
+def _set_newton(model, iterations):
+    """Raise the model's Newton iterations for one attempt; returns the undo."""
+    if hasattr(model, "integrator"):                     # FullSpaceModel
+        s = model.integrator.settings
+        old = s.max_iterations
+        s.max_iterations = max(old, int(iterations))
+
+        def undo():
+            s.max_iterations = old
+        return undo
+    old = model.newton_iterations                        # ReducedModel
+    model.newton_iterations = max(old, int(iterations))
+
+    def undo():
+        model.newton_iterations = old
+    return undo
+
+
+def _action(n_sub, newton, implicit=False):
+    parts = []
+    if newton:
+        parts.append(f"{newton} Newton iterations")
+    if implicit:
+        parts.append("implicit fictitious forces")
+    if n_sub > 1:
+        parts.append(f"{n_sub} sub-steps")
+    return "rollback, " + " x ".join(parts) if parts else "rollback"
+
+
+def _powers_of_two(lo, hi):
+    out, n = [], lo
+    while n <= hi:
+        out.append(n)
+        n *= 2
+    return out

@@ -1,0 +1,280 @@
+"""`mdss stability --out DIR [--quick]`: the stability matrix of issue 7.
+
+Every cell is a small body (a 0.2 x 0.1 x 0.1 m box, a few hundred tets) stepped a fixed
+number of steps through the Simulator with its stability guard on (mdss_ros/guard.py).
+
+Parameters (every value appears; the product space is sub-sampled, see `design`):
+  young    {1e3, 1e5, 1e7, 1e9, 1e11} Pa      poisson  {0, 0.3, 0.45, 0.49, 0.499}
+  dt       {1e-4, 1/90, 1/30} s                spin     {0, 10, 50} rad/s
+  force    {1, 1e3} x a 1 N tip load (held for the first half of the steps, then released)
+Base point: young 1e7, poisson 0.3, dt 1/90, spin 0, force 1. The design is
+  * the young x poisson grid at the base dt, spin, force      (25 cells),
+  * the dt x spin x force grid at the base young, poisson       (18 cells),
+  * a half fraction (16) of the 32 corners of the box {1e3, 1e11} x {0, 0.499} x
+    {1e-4, 1/30} x {0, 50} x {1, 1e3}: every pair of extremes meets (see `corners`),
+minus duplicates: 58 cells, each for model kind {full, reduced} and material {stvk,
+corotated, neohookean}. --quick runs one-at-a-time around the base (14 cells) plus the
+4 corners with spin 50, fewer steps.
+
+Setup of a cell: spin 0 clamps the end x = 0 (a cantilever); spin > 0 frees the body
+(no pins) and spins it about the tilted axis (0.2, 0.3, 1) (tumbling, not a principal
+axis). Gravity -9.81 m/s^2, density 1000, no damping. The full model uses backward Euler
+with one Newton iteration (the papers' linearly implicit step); the reduced model two
+domains x 8 modes, exact forces (no cubature), one-step scheme, one Newton iteration.
+
+Classification of a cell:
+  failed     a step the guard could not recover (rolled back), a non-finite state, an
+             inverted tet left at the end, or unbounded energy: the energy created beyond
+             the work of the loads, max_t (E(t) - E(0) - W(t)), above ENERGY_BOUND x the
+             run's energy scale max_t (E_kin + E_el + |W| + |gravity potential change|)
+             (the guard's own "energy drift" check, guard.py, enforces the same bound);
+  recovered  the guard acted (a step was rolled back and retried, or kept "degraded"
+             with soft signs left) and the run ended finite, uninverted, energy bounded;
+  stable     no guard action and the checks above pass.
+Each recovered cell lists what the guard did (per-step actions, counted).
+"""
+import itertools
+import json
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+YOUNG = [1e3, 1e5, 1e7, 1e9, 1e11]
+POISSON = [0.0, 0.3, 0.45, 0.49, 0.499]
+DTS = [1e-4, 1.0 / 90.0, 1.0 / 30.0]
+SPINS = [0.0, 10.0, 50.0]
+FORCES = [1.0, 1e3]
+BASE = {"young": 1e7, "poisson": 0.3, "dt": 1.0 / 90.0, "spin": 0.0, "force": 1.0}
+KINDS = ["full", "reduced"]
+MATERIALS = ["stvk", "corotated", "neohookean"]
+TIP_FORCE = 1.0                 # N at force scale 1, pointing -z
+STEPS, QUICK_STEPS = 24, 16
+ENERGY_BOUND = 0.1
+SPIN_AXIS = np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0])
+CELL = 0.03                     # m, mesh cell of the box generator
+
+
+def _key(c):
+    return tuple(c[k] for k in ("young", "poisson", "dt", "spin", "force"))
+
+
+def corners():
+    """The 2^(5-1) half fraction of the corners of the extreme box (defining relation
+    I = ABCDE: the product of the five +-1 levels is +1): every pair of parameters meets in
+    all four combinations of its extremes, with half the runs of the full 32."""
+    ext = [(YOUNG[0], YOUNG[-1]), (POISSON[0], POISSON[-1]), (DTS[0], DTS[-1]), (SPINS[0], SPINS[-1]),
+           (FORCES[0], FORCES[-1])]
+    out = []
+    for signs in itertools.product((0, 1), repeat=5):
+        if sum(signs) % 2 == 0:
+            out.append(dict(zip(("young", "poisson", "dt", "spin", "force"),
+                                (e[s] for e, s in zip(ext, signs)))))
+    return out
+
+
+def design(quick=False):
+    """The list of parameter cells (dicts), duplicates removed, in a documented order."""
+    cells = []
+    if quick:
+        for name, values in (("young", YOUNG), ("poisson", POISSON), ("dt", DTS), ("spin", SPINS),
+                             ("force", FORCES)):
+            cells += [dict(BASE, **{name: v}) for v in values]
+        cells += [dict(BASE, young=e, poisson=nu, spin=50.0, dt=1.0 / 30.0, force=1e3)
+                  for e in (YOUNG[0], YOUNG[-1]) for nu in (POISSON[0], POISSON[-1])]
+    else:
+        cells += [dict(BASE, young=e, poisson=nu) for e in YOUNG for nu in POISSON]
+        cells += [dict(BASE, dt=dt, spin=w, force=f) for dt in DTS for w in SPINS for f in FORCES]
+        cells += corners()
+    seen, out = set(), []
+    for c in cells:
+        if _key(c) not in seen:
+            seen.add(_key(c))
+            out.append(c)
+    return out
+
+
+def cell_scene(kind, material, young, poisson, dt, spin, force=1.0):
+    """The scene dict of a cell (force is applied by run_cell, not the scene)."""
+    return {
+        "name": "stability_cell",
+        "body": {"mesh": {"generator": "box", "size": [0.2, 0.1, 0.1], "cell": CELL},
+                 "material": {"model": material, "young": float(young), "poisson": float(poisson),
+                              "density": 1000.0},
+                 "damping": {"alpha": 0.0, "beta": 0.0}},
+        "pins": [] if spin else [{"box": [[-0.001, -1, -1], [0.001, 1, 1]]}],
+        "handles": {"tip": {"box": [[0.199, -1, -1], [0.201, 1, 1]]}},
+        "model": {"kind": kind, "domains": {"count": 2}, "modes": 8,
+                  "cubature": {"samples": 0, "interface": "exact"},
+                  "integrator": {"dt": float(dt), "newton_iterations": 1}},
+        "initial_velocity": {"angular": [float(a) for a in spin * SPIN_AXIS]},
+        "gravity": [0.0, 0.0, -9.81],
+    }
+
+
+def run_cell(kind, material, cell, steps, cache=None):
+    """Step one cell; returns its row (classification, counts, energy numbers)."""
+    from ..guard import inverted_tets
+    from ..precompute import PrecomputeCache
+    from ..simulator import Simulator
+    t0 = time.perf_counter()
+    sim = Simulator(cell_scene(kind, material, cell["young"], cell["poisson"], cell["dt"], cell["spin"]),
+                    cache=cache if cache is not None else PrecomputeCache(enabled=False))
+    build = time.perf_counter() - t0
+    sim.set_wrench("tip", force=(0.0, 0.0, -TIP_FORCE * cell["force"]))
+    e0 = sim.energy()
+    E0, W = e0["total"], 0.0
+    created, scale = 0.0, e0["kinetic"] + max(e0["elastic"], 0.0)
+    states, actions, reasons = Counter(), Counter(), Counter()
+    x = sim.vertex_positions()
+    for k in range(steps):
+        if k == steps // 2:
+            sim.set_wrench("tip", force=(0.0, 0.0, 0.0))
+        sim.step()
+        st = sim.stats()
+        x = sim.vertex_positions().copy()
+        # Work of the load as the model accounts it (guard.py: backward-Euler work; a
+        # chord f . dx is wrong when a free body turns a large angle in one step).
+        W += st["guard_work"]
+        states[st["stability"]] += 1
+        if st["stability"] != "stable":
+            actions[st["guard_action"]] += 1
+            reasons[st["guard_reason"]] += 1
+        e = sim.energy()
+        created = max(created, e["total"] - E0 - W)
+        scale = max(scale, e["kinetic"] + max(e["elastic"], 0.0) + abs(W) + abs(e["gravity"] - e0["gravity"]))
+    finite = bool(np.isfinite(x).all())
+    inverted = inverted_tets(x, sim.tetrahedra()) if finite else -1
+    ratio = created / max(scale, 1e-300)
+    why = []
+    if states["failed"]:
+        why.append(f"{states['failed']} step(s) not recoverable")
+    if not finite:
+        why.append("non-finite state")
+    if inverted:
+        why.append(f"{inverted} inverted tets at the end")
+    if ratio > ENERGY_BOUND:
+        why.append(f"energy created {ratio:.2f} x scale")
+    acted = states["recovered"] + states["degraded"]
+    status = "failed" if why else ("recovered" if acted else "stable")
+    return dict(cell, kind=kind, material=material, status=status, why=why, steps=steps,
+                states=dict(states), actions=dict(actions), reasons=dict(reasons),
+                energy_created_ratio=ratio, inverted_end=inverted, work=W, E0=E0,
+                E_end=float(sim.energy()["total"]) if finite else None,
+                indefinite_steps=int(sim.stats().get("guard_indefinite_steps", 0)),
+                tets=int(len(sim.tetrahedra())), dofs=int(sim.stats()["dofs"]),
+                build_s=build, seconds=time.perf_counter() - t0)
+
+
+def cell_label(c):
+    dt = {1e-4: "1e-4", 1.0 / 90.0: "1/90", 1.0 / 30.0: "1/30"}.get(c["dt"], f"{c['dt']:g}")
+    return f"E={c['young']:.0e} nu={c['poisson']:g} dt={dt} w={c['spin']:g} f={c['force']:g}"
+
+
+COLOURS = {"stable": "#4caf50", "recovered": "#ffb300", "failed": "#d32f2f"}
+
+
+def heatmap(rows, kind, cells, path):
+    """One PNG per model kind: rows = cells (design order, labelled with their parameters),
+    columns = materials; colour = class, text = guard action count (r: recovered steps,
+    d: degraded steps, F: failed steps)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+    code = {"stable": 0, "recovered": 1, "failed": 2}
+    by = {(r["material"], _key(r)): r for r in rows if r["kind"] == kind}
+    grid = np.full((len(cells), len(MATERIALS)), np.nan)
+    fig, ax = plt.subplots(figsize=(7.5, 0.22 * len(cells) + 1.6))
+    for i, c in enumerate(cells):
+        for j, m in enumerate(MATERIALS):
+            r = by.get((m, _key(c)))
+            if r is None:
+                continue
+            grid[i, j] = code[r["status"]]
+            s = r["states"]
+            text = " ".join(f"{t}{s[n]}" for t, n in (("r", "recovered"), ("d", "degraded"), ("F", "failed"))
+                            if s.get(n))
+            ax.text(j, i, text, ha="center", va="center", fontsize=6)
+    ax.imshow(grid, aspect="auto", cmap=ListedColormap([COLOURS[k] for k in code]), vmin=0, vmax=2,
+              interpolation="nearest")
+    ax.set_xticks(range(len(MATERIALS)), MATERIALS)
+    ax.set_yticks(range(len(cells)), [cell_label(c) for c in cells], fontsize=6)
+    ax.xaxis.tick_top()
+    ax.legend(handles=[Patch(color=v, label=k) for k, v in COLOURS.items()], loc="upper center",
+              bbox_to_anchor=(0.5, -0.005), ncol=3, fontsize=7)
+    ax.set_title(f"stability matrix, {kind} model (text: steps recovered r / degraded d / failed F)",
+                 fontsize=8, pad=18)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)
+
+
+def summary(rows):
+    """{kind: {stable, recovered, failed}} and a printable table."""
+    counts = {k: Counter(r["status"] for r in rows if r["kind"] == k) for k in KINDS}
+    lines = [f"{'model':8s} {'material':11s} {'stable':>7s} {'recovered':>10s} {'failed':>7s}"]
+    for k in KINDS:
+        for m in MATERIALS:
+            c = Counter(r["status"] for r in rows if r["kind"] == k and r["material"] == m)
+            if sum(c.values()):
+                lines.append(f"{k:8s} {m:11s} {c['stable']:7d} {c['recovered']:10d} {c['failed']:7d}")
+        lines.append(f"{k:8s} {'all':11s} {counts[k]['stable']:7d} {counts[k]['recovered']:10d} "
+                     f"{counts[k]['failed']:7d}")
+    for k in KINDS:
+        rec = [r for r in rows if r["kind"] == k and r["status"] == "recovered"]
+        if not rec:
+            continue
+        reasons, actions = Counter(), Counter()
+        for r in rec:
+            reasons.update(r["reasons"])
+            actions.update(r["actions"])
+        lines.append(f"{k}: guard steps in recovered cells, detected: "
+                     + ", ".join(f"{n} x {w or '-'}" for w, n in reasons.most_common()))
+        lines.append(f"{k}: ... fixed by: " + ", ".join(f"{n} x {a}" for a, n in actions.most_common()))
+    return {k: dict(v) for k, v in counts.items()}, "\n".join(lines)
+
+
+def run_study(out, quick=False, kinds=None, materials=None, log=print):
+    """Run the matrix, write stability.json and stability_<kind>.png into out; returns the report."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    cells = design(quick)
+    kinds = kinds or KINDS
+    materials = materials or MATERIALS
+    steps = QUICK_STEPS if quick else STEPS
+    total = len(cells) * len(kinds) * len(materials)
+    log(f"mdss stability: {len(cells)} cells x {len(kinds)} model kinds x {len(materials)} materials = "
+        f"{total} runs of {steps} steps")
+    rows, t0, n = [], time.perf_counter(), 0
+    for kind in kinds:
+        for material in materials:
+            for c in cells:
+                n += 1
+                r = run_cell(kind, material, c, steps)
+                rows.append(r)
+                extra = f" ({'; '.join(r['why'])})" if r["why"] else ""
+                if r["status"] == "recovered":
+                    extra = f" ({', '.join(f'{a}: {k}' for a, k in r['actions'].items())})"
+                log(f"  [{n:3d}/{total} {time.perf_counter() - t0:6.0f} s] {kind:7s} {material:10s} "
+                    f"{cell_label(c):42s} {r['status']:9s} {r['seconds']:5.1f} s{extra}")
+    counts, table = summary(rows)
+    plots = [heatmap(rows, k, cells, out / f"stability_{k}.png") for k in kinds]
+    report = {"design": {"young": YOUNG, "poisson": POISSON, "dt": DTS, "spin": SPINS, "force": FORCES,
+                         "base": BASE, "quick": quick, "steps": steps, "tip_force_N": TIP_FORCE,
+                         "energy_bound": ENERGY_BOUND, "cells": len(cells)},
+              "counts": counts, "rows": rows, "plots": plots, "seconds": time.perf_counter() - t0}
+    (out / "stability.json").write_text(json.dumps(report, indent=1, default=_json))
+    log(table)
+    log(f"mdss stability: wrote {out / 'stability.json'} and {', '.join(plots)} "
+        f"in {report['seconds']:.0f} s")
+    return report
+
+
+def _json(x):
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    raise TypeError(f"not JSON: {type(x).__name__}")

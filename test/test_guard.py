@@ -1,0 +1,293 @@
+"""The stability guard (mdss_ros/guard.py) and the model state accessors it rolls back with."""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.guard import inverted_tets
+from mdss_ros.precompute import PrecomputeCache
+
+SMALL = {"body.mesh.cell": 0.05, "model.cubature": {"samples": 0, "interface": "exact"}, "model.modes": 6}
+
+
+def _sim(kind, **over):
+    scene = load_scene("cantilever", overrides=dict(SMALL, **{"model.kind": kind}, **over))
+    return Simulator(scene, cache=PrecomputeCache(enabled=False))
+
+
+@pytest.fixture(scope="module", params=["full", "reduced"])
+def sim(request):
+    return _sim(request.param)
+
+
+def _state_arrays(sim):
+    return sim.vertex_positions().copy(), sim.model.vertex_velocities().copy()
+
+
+def test_state_round_trip_restores_and_replays_exactly(sim):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -20.0))
+    sim.step(3)
+    snap = sim.model.get_state()
+    x0, v0 = _state_arrays(sim)
+    sim.step(2)
+    x2, v2 = _state_arrays(sim)
+    assert np.abs(x2 - x0).max() > 1e-6               # the state really moved
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+    np.testing.assert_array_equal(sim.model.vertex_velocities(), v0)
+    sim.guard.invalidate()
+    sim.step(2)                                       # same inputs: same trajectory
+    np.testing.assert_allclose(sim.vertex_positions(), x2, rtol=0, atol=1e-12)
+    # the snapshot is a copy: stepping did not change it
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+
+
+def test_reduced_state_round_trip_of_a_spinning_free_body():
+    sim = Simulator(load_scene("cantilever", overrides=dict(SMALL, **{"model.kind": "reduced", "pins": [],
+                                                                      "initial_velocity.angular": [0.5, 0.0, 3.0]})),
+                    cache=PrecomputeCache(enabled=False))
+    sim.step(3)
+    snap = sim.model.get_state()
+    x0, v0 = _state_arrays(sim)
+    poses = sim.domain_poses().copy()
+    sim.step(3)
+    assert np.abs(sim.domain_poses() - poses).max() > 1e-3
+    sim.model.set_state(snap)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+    np.testing.assert_array_equal(sim.model.vertex_velocities(), v0)
+    np.testing.assert_array_equal(sim.domain_poses(), poses)
+
+
+def test_stable_run_reports_stable_with_no_recoveries(sim):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    for _ in range(10):
+        sim.step()
+        assert sim.stats()["stability"] == "stable"
+    st = sim.stats()
+    assert st["guard_recoveries"] == st["guard_failures"] == st["guard_degraded"] == 0
+    assert st["guard_substeps"] == 1 and st["guard_attempts"] == 1
+
+
+def _inject(monkeypatch, sim, spoil, times):
+    """Make the model's next `times` steps end in a spoiled state (spoil(model))."""
+    model = sim.model
+    real = model.step
+    calls = {"n": 0}
+
+    def step(*a, **k):
+        out = real(*a, **k)
+        calls["n"] += 1
+        if calls["n"] <= times:
+            spoil(model)
+        return out
+    monkeypatch.setattr(model, "step", step)
+    return calls
+
+
+def _nan(model):
+    if model.kind == "full":
+        model.x = model.x.copy()
+        model.x[5] = np.nan
+    else:
+        model.q[0] = np.full_like(model.q[0], np.nan)
+
+
+def _blow_up(model):
+    if model.kind == "full":
+        model.v = 100.0 * model.v + 1.0
+    else:
+        model.qd = [100.0 * qd + 1.0 for qd in model.qd]
+
+
+@pytest.mark.parametrize("spoil, reason", [(_nan, "non-finite"), (_blow_up, "energy")])
+def test_guard_rolls_back_an_injected_divergence_and_recovers(sim, monkeypatch, spoil, reason):
+    sim.reset()
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    sim.step(3)
+    reference = _sim(sim.model.kind)                  # the same run without the injection
+    reference.set_wrench("tip", force=(0, 0, -5.0))
+    reference.step(3)
+    calls = _inject(monkeypatch, sim, spoil, times=1)
+    sim.step()
+    st = sim.stats()
+    assert calls["n"] >= 2                            # rolled back and stepped again
+    assert st["stability"] == "recovered" and reason in st["guard_reason"]
+    assert st["guard_recoveries"] == 1 and "rollback" in st["guard_action"]
+    assert np.all(np.isfinite(sim.vertex_positions()))
+    assert abs(sim.time - 4 * sim.dt) < 1e-12
+    # The retry (more Newton iterations) starts from the rolled-back state: it lands near
+    # the clean one-iteration step, not near the spoiled state.
+    reference.step()
+    assert np.abs(sim.vertex_positions() - reference.vertex_positions()).max() < 1e-3
+    assert sim.energy()["kinetic"] < 10 * reference.energy()["kinetic"] + 1e-6
+
+
+def test_guard_never_lets_a_nan_out_and_keeps_the_last_good_state(sim, monkeypatch):
+    sim.reset()
+    sim.step(2)
+    x_good = sim.vertex_positions().copy()
+    _inject(monkeypatch, sim, _nan, times=10 ** 6)
+    sim.step()
+    st = sim.stats()
+    assert st["stability"] == "failed" and st["guard_failures"] == 1
+    assert st["guard_attempts"] > 3                  # the whole ladder was tried
+    np.testing.assert_array_equal(sim.vertex_positions(), x_good)
+    assert np.all(np.isfinite(sim.surface_positions())) and np.isfinite(sim.energy()["total"])
+    assert sim.step_count == 3                       # time goes on
+    monkeypatch.undo()
+    sim.step()
+    assert sim.stats()["stability"] == "stable" and sim.stats()["guard_failures"] == 1
+
+
+def test_guard_catches_a_solver_error(sim, monkeypatch):
+    sim.reset()
+    model = sim.model
+    real = model.step
+    calls = {"n": 0}
+
+    def step(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise np.linalg.LinAlgError("singular matrix")
+        return real(*a, **k)
+    monkeypatch.setattr(model, "step", step)
+    sim.step()
+    assert sim.stats()["stability"] == "recovered" and sim.stats()["guard_reason"] == "non-finite"
+
+
+def test_guard_off_by_scene_key_and_defaults():
+    scene = load_scene("cantilever")
+    g = scene["model"]["guard"]
+    assert g["enabled"] is True and g["max_substeps"] >= 2 and g["energy_growth"] > 0
+    sim = _sim("full", **{"model.guard.enabled": False})
+    sim.step()
+    assert sim.stats()["stability"] == "unchecked"
+    with pytest.raises(Exception, match="model.guard.max_substeps"):
+        load_scene("cantilever", overrides={"model.guard.max_substeps": 0})
+
+
+def test_inverted_tets_counts_flipped_elements():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1.0]])
+    tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
+    assert inverted_tets(x, tets) == 0
+    x[3, 2] = -0.5                                   # push the apex through the base
+    assert inverted_tets(x, tets) == 1
+
+
+# ---------------------------------------------------------------- implicit fictitious forces
+def _spinning_reduced(fictitious, dt, young=1e7):
+    from mdss_ros.verify.stability_study import cell_scene
+    sc = cell_scene("reduced", "corotated", young, 0.3, dt, 50.0)
+    sc["gravity"] = [0.0, 0.0, 0.0]
+    sc["model"]["guard"] = {"enabled": False}
+    sc["model"]["integrator"]["fictitious"] = fictitious
+    return Simulator(load_scene(sc), cache=PrecomputeCache(enabled=False))
+
+
+def test_fictitious_matrices_split_the_explicit_force():
+    """C qd + K_cf q + (q, qd-free part) reproduces frames.fictitious_forces; C is skew,
+    K_cf symmetric PSD, and the modal Coriolis flow keeps |qd|."""
+    from mdss_ros.reduced.frames import fictitious_forces
+    sim = _spinning_reduced("implicit", 1 / 90)
+    sim.step(3)
+    m = sim.model
+    C, K = m._fictitious_matrices(m.frames)
+    rng = np.random.default_rng(0)
+    for k, dom in enumerate(m.subspace):
+        o, r = m.sub_offsets[k], dom.r
+        omega = m.frames.R[k].T @ m.frames.w[k]
+        q, qd = rng.normal(size=r), rng.normal(size=r)
+        f0 = fictitious_forces(dom.tensors, np.zeros(r), np.zeros(r), omega, np.zeros(3))
+        f = fictitious_forces(dom.tensors, q, qd, omega, np.zeros(3))
+        np.testing.assert_allclose(f, f0 + C[o:o + r, o:o + r] @ qd + K[o:o + r, o:o + r] @ q, rtol=1e-10,
+                                   atol=1e-10 * np.abs(f).max())
+    np.testing.assert_allclose(C, -C.T, atol=1e-12 * np.abs(C).max())
+    np.testing.assert_allclose(K, K.T, atol=1e-12 * np.abs(K).max())
+    assert np.linalg.eigvalsh(K).min() > -1e-9 * np.abs(K).max()
+    Q = rng.normal(size=m.n_gen)
+    Qr = m._modal_coriolis_rotate(C, Q)
+    assert not np.allclose(Qr, Q)
+    np.testing.assert_allclose(np.linalg.norm(Qr), np.linalg.norm(Q), rtol=1e-12)
+
+
+def test_implicit_fictitious_forces_agree_at_small_dt_and_tame_a_fast_spin():
+    a, b = _spinning_reduced("explicit", 1e-3), _spinning_reduced("implicit", 1e-3)
+    a.step(20)
+    b.step(20)
+    scale = np.abs(a.vertex_positions() - a.rest_positions()).max()
+    assert np.abs(a.vertex_positions() - b.vertex_positions()).max() < 1e-3 * scale
+    # 50 rad/s at dt = 1/30 (1.7 rad per step), stiff body: explicit fictitious forces pump
+    # energy in by orders of magnitude; the implicit treatment much less.
+    peaks = {}
+    for fic in ("explicit", "implicit"):
+        sim = _spinning_reduced(fic, 1 / 30)
+        e0, peak = sim.energy()["total"], 0.0
+        with np.errstate(all="ignore"):
+            for _ in range(30):
+                sim.step()
+                peak = max(peak, sim.energy()["total"] / e0)
+        peaks[fic] = peak
+    assert peaks["explicit"] > 100 and peaks["implicit"] < 0.1 * peaks["explicit"], peaks
+
+
+def test_slow_energy_pumping_is_caught_as_drift():
+    """A pump that adds 8 % of kinetic energy per step stays under the per-step bound; the
+    run's energy ledger catches it, and the retries (which the pump spares) keep the energy
+    below that of the same pumped run without the guard."""
+    finals = {}
+    for guard in (False, True):
+        sim = _sim("full", **{"gravity": [0.0, 0.0, 0.0], "body.damping.beta": 0.0, "model.guard.enabled": guard})
+        model, real = sim.model, sim.model.step
+
+        def pumped(*a, model=model, real=real, **k):
+            out = real(*a, **k)
+            if model.integrator.settings.max_iterations == 1:      # first attempts only
+                model.v = 1.04 * model.v
+            return out
+        model.step = pumped
+        sim.set_wrench("tip", force=(0, 0, -20.0))
+        sim.step(5)
+        sim.set_wrench("tip", force=(0, 0, 0))
+        reasons = []
+        for _ in range(60):
+            sim.step()
+            reasons.append(sim.stats().get("guard_reason"))
+        finals[guard] = sim.energy()["total"]
+        if guard:
+            assert "energy drift" in reasons and sim.stats()["guard_failures"] == 0
+            assert sim.stats()["guard_recoveries"] >= 1
+    assert finals[True] < 0.8 * finals[False], finals
+
+
+def test_guard_sub_steps_sweep_colliders_to_their_target(monkeypatch):
+    """A retried step with a moving collider: sub-steps interpolate the collider from its
+    pose at the step start to the pose set for the step's end; the contact holds."""
+    scene = {"name": "block",
+             "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.05, "origin": [-0.1, -0.1, 0.0]},
+                      "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000},
+                      "damping": {"alpha": 5.0, "beta": 0.0}},
+             "colliders": {"floor": {"shape": "plane"},
+                           "ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.15]}},
+             "model": {"kind": "full", "integrator": {"dt": 0.01, "newton_iterations": 2},
+                       "guard": {"newton_iterations": 2}}}        # retries = sub-steps only
+    sim = Simulator(load_scene(scene))
+    sim.step(10)
+    poses = []
+    real = sim.model.step
+
+    def spy(*a, **k):
+        poses.append(sim.colliders["ball"].position.copy())
+        out = real(*a, **k)
+        if len(poses) == 1:
+            _nan(sim.model)
+        return out
+    monkeypatch.setattr(sim.model, "step", spy)
+    sim.set_collider_pose("ball", (0.0, 0.0, 0.135))                 # 5 mm into the top
+    sim.step()
+    st = sim.stats()
+    assert st["stability"] == "recovered" and st["guard_substeps"] == 2
+    np.testing.assert_allclose([p[2] for p in poses], [0.135, 0.1425, 0.135])
+    np.testing.assert_allclose(sim.colliders["ball"].position, [0, 0, 0.135])
+    assert sim.colliders["ball"].signed_distance(sim.vertex_positions())[0].min() > -1e-6
