@@ -313,6 +313,7 @@ def cmd_tradeoff(args):
         raise SystemExit(f"mdss tradeoff: {err}")
     return 0
 
+
 def cmd_stability(args):
     """`mdss stability --out DIR [--quick]`: the stability matrix (verify/stability_study.py)."""
     from .verify.stability_study import KINDS, MATERIALS, run_study
