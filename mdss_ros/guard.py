@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import MdssError
+from .loads import sparse_loads
 
 #: Exceptions a diverging step raises (singular or indefinite systems, SVD of NaN,
 #: "array must not contain infs or NaNs"). Configuration errors (MdssError) pass through.
@@ -86,6 +87,7 @@ class Measure:
     gravity: float
     inverted: int
     finite: bool
+    speed: float = None        # largest vertex speed (or a bound); None: from v
 
     @property
     def total(self):
@@ -102,7 +104,10 @@ def inverted_tets(x, tets):
 
 
 def measure(model, tets, gravity, check_inversion=True):
-    """Measure a model's current state (see Measure). Never raises on NaN."""
+    """Measure a model's current state (see Measure). Never raises on NaN. A model with a
+    guard_measure method (ReducedModel) measures itself in its own coordinates."""
+    if hasattr(model, "guard_measure"):
+        return model.guard_measure(gravity, check_inversion)
     with np.errstate(all="ignore"):
         x = np.asarray(model.vertex_positions(), dtype=np.float64)
         v = np.asarray(model.vertex_velocities(), dtype=np.float64)
@@ -186,7 +191,10 @@ class StabilityGuard:
             run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
             if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
                 out.hard.append("energy drift")
-        speed = float(np.sqrt((after.v * after.v).sum(1).max())) if len(after.v) else 0.0
+        if after.speed is not None:
+            speed = after.speed
+        else:
+            speed = float(np.sqrt((after.v * after.v).sum(1).max())) if len(after.v) else 0.0
         if speed > s.max_speed:
             out.hard.append("speed")
         if s.inversion and after.inverted > before.inverted:
@@ -301,7 +309,7 @@ class StabilityGuard:
         restore_newton = _set_newton(model, newton) if newton else None
         if implicit:
             model.fictitious = "implicit"
-        loaded = np.flatnonzero(np.any(f_app != 0.0, axis=1))
+        loaded = None if hasattr(model, "guard_measure") else sparse_loads(f_app)     # (ids, forces)
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
         self._work = 0.0
         try:
@@ -318,7 +326,8 @@ class StabilityGuard:
                     return {"error": self.last_error}, v, prev
                 after = measure(model, self.tets, gravity, self.settings.inversion)
                 work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
-                             stats.get("external_work") if isinstance(stats, dict) else None)
+                             stats.get("external_work") if isinstance(stats, dict) else None,
+                             stats.get("contact_work") if isinstance(stats, dict) else None)
                 v = self.judge(prev, after, work, stats, gravity)
                 if v.hard:
                     return stats, v, after
@@ -336,7 +345,7 @@ class StabilityGuard:
         return stats, verdict, prev
 
 
-def _work(f_app, loaded, before, after, contact, model_work=None):
+def _work(f_app, loaded, before, after, contact, model_work=None, contact_work=None):
     """Work of the applied loads (constant over the step) and of the contact forces on the
     body over a (sub-)step. For the loads: the model's own account when it reports one
     (ReducedModel: dt F_app . Q', its backward-Euler work, which stays right when a frame
@@ -346,8 +355,11 @@ def _work(f_app, loaded, before, after, contact, model_work=None):
         if model_work is not None:
             w = float(model_work)
         else:
-            w = float((f_app[loaded] * (after.x[loaded] - before.x[loaded])).sum()) if len(loaded) else 0.0
-        if contact and len(contact.get("vertices", ())):
+            ids, f = loaded
+            w = float((f * (after.x[ids] - before.x[ids])).sum()) if len(ids) else 0.0
+        if contact_work is not None:
+            w += float(contact_work)
+        elif contact and len(contact.get("vertices", ())):
             ids = np.asarray(contact["vertices"])
             w += float((contact["forces"] * (after.x[ids] - before.x[ids])).sum())
     return w

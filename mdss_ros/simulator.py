@@ -11,7 +11,7 @@ import numpy as np
 from .body import build_body
 from .errors import SceneError
 from .guard import GuardSettings, StabilityGuard
-from .loads import closest_surface_point, wrench_to_vertex_forces
+from .loads import VertexLoads, closest_surface_point, wrench_to_vertex_forces
 from .scene import Scene, load_scene
 
 
@@ -132,16 +132,22 @@ class Simulator:
         """Per-vertex external force (n_verts, 3) for the coming step, gravity included."""
         return self.applied_forces() + self.model.vertex_mass[:, None] * self.gravity[None, :]
 
+    def applied_loads(self):
+        """The applied loads (wrenches and point forces, no gravity) as VertexLoads: only the
+        loaded vertices, so a reduced step never touches an (n_verts, 3) array."""
+        parts = []
+        for handle, (force, torque) in self._wrenches.items():
+            ids = self.body.handles[handle]
+            parts.append((ids, wrench_to_vertex_forces(self.model.positions_of(ids), self.model.vertex_mass[ids],
+                                                       force, torque)))
+        for ids, bary, force, _ in self._point_forces:
+            parts.append((ids, bary[:, None] * force[None, :]))
+        return VertexLoads(len(self.body.vertices), parts)
+
     def applied_forces(self):
         """Per-vertex applied loads (n_verts, 3): wrenches and point forces, no gravity
         (models treat gravity in closed form, so a step touches only loaded vertices)."""
-        f = np.zeros((len(self.body.vertices), 3))
-        for handle, (force, torque) in self._wrenches.items():
-            ids = self.body.handles[handle]
-            f[ids] += wrench_to_vertex_forces(self.model.positions_of(ids), self.model.vertex_mass[ids], force, torque)
-        for ids, bary, force, _ in self._point_forces:
-            f[ids] += bary[:, None] * force[None, :]
-        return f
+        return self.applied_loads().dense()
 
     # ----------------------------------------------------------------- stepping
     def step(self, n=1):
@@ -150,7 +156,7 @@ class Simulator:
         kept and stats()["stability"] says "failed". Time advances either way."""
         for _ in range(int(n)):
             t0 = time.perf_counter()
-            f_app = self.applied_forces()
+            f_app = self.applied_loads()
             t1 = time.perf_counter()
             # Collider poses set for the end of this step; guard sub-steps interpolate towards them.
             self._collider_targets = {name: (c.position.copy(), c.orientation.copy())

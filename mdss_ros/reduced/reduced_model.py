@@ -970,9 +970,11 @@ class ReducedModel:
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
+        self._contact_rigid = np.zeros(len(phi))          # dt n . (rigid velocity) per row
         if gm is not None:
             Cg, Vg, Wg = gm[:3]
-            phi_eff += self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
+            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
+            phi_eff += self._contact_rigid
         return verts, C, phi_eff, normals, which
 
     def _contact_solve(self, rows, Q, dQ):
@@ -1075,7 +1077,10 @@ class ReducedModel:
                     break
         q, qd, frames, x_full, v_full = self._predict(Q, base)
         self.q, self.qd, self.frames = q, qd, frames
+        if self.F:             # before the contact outputs, which read full-space positions
+            self.x_full, self.v_full = x_full, v_full
         self.contact = None
+        contact_work = 0.0
         if contact_rows is not None:
             verts, _, _, normals, which = contact_rows
             lam = getattr(self, "_contact_lam", np.zeros(len(verts)))
@@ -1089,13 +1094,16 @@ class ReducedModel:
             self.contact = {"vertices": verts[active], "normals": normals[active], "which": which[active],
                             "forces": lam[active, None] * normals[active], "points": pts, "depth": depth,
                             "candidates": int(len(verts))}
-        if self.F:
-            self.x_full, self.v_full = x_full, v_full
+            # Work of the contact forces over the step in the step's own terms (the guard's
+            # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
+            # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
+            contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
         residual_ratio = r_last / r0 if r0 > 0 else 0.0
         external_work = dt * float(F_app @ self.get_Q())
         self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
+                      "contact_work": contact_work,
                       "domain_ms": timing["domain_ms"],
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
@@ -1159,6 +1167,83 @@ class ReducedModel:
     def kinetic_energy(self):
         v = self.vertex_velocities()
         return 0.5 * float((self.vertex_mass * (v * v).sum(1)).sum())
+
+    def guard_measure(self, gravity, check_inversion=True):
+        """What the stability guard reads from the state (guard.Measure), in the reduced
+        coordinates so it costs nothing that grows with the mesh: kinetic energy exactly,
+        per free domain 1/2 M |v|^2 + 1/2 w'^T I(q) w' + w' . (q^T W qd) + 1/2 |qd|^2 (the
+        basis is mass-orthonormal and mass-orthogonal to rigid motion, W the fictitious
+        tensor sum m u_a x u_b); elastic energy from the model's forces (cubature); gravity
+        potential from the mass moments; an upper bound of vertex speeds,
+        |v| + |w| (rho + sigma |q|) + sigma |qd| (rho the largest rest radius, sigma the
+        largest per-vertex basis norm); inverted elements among those the forces sample
+        (cubature samples, coupling and full-space elements)."""
+        from ..guard import Measure, inverted_tets
+        g = np.asarray(gravity, dtype=np.float64)
+        fr = self.frames
+        with np.errstate(all="ignore"):
+            finite = bool(all(np.isfinite(q).all() and np.isfinite(v).all() for q, v in zip(self.q, self.qd))
+                          and np.isfinite(fr.c).all() and np.isfinite(fr.R).all() and np.isfinite(fr.v).all()
+                          and np.isfinite(fr.w).all() and np.isfinite(self.x_full).all()
+                          and np.isfinite(self.v_full).all())
+            if not finite:
+                return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
+            kinetic, grav, speed = 0.0, 0.0, 0.0
+            for k, dom in enumerate(self.subspace):
+                q, qd = self.q[k], self.qd[k]
+                rho, sigma = self._guard_radii(k)
+                kinetic += 0.5 * float(qd @ qd)
+                if dom.movable:
+                    w = fr.R[k].T @ fr.w[k]
+                    kinetic += (0.5 * dom.total_mass * float(fr.v[k] @ fr.v[k]) + 0.5 * float(w @ dom.inertia(q) @ w)
+                                + float(w @ np.einsum("a,b,abk->k", q, qd, dom.tensors.W)))
+                    speed = max(speed, float(np.linalg.norm(fr.v[k]) + np.linalg.norm(fr.w[k])
+                                             * (rho + sigma * np.linalg.norm(q)) + sigma * np.linalg.norm(qd)))
+                else:
+                    speed = max(speed, sigma * float(np.linalg.norm(qd)))
+                moment = dom.total_mass * fr.c[k] + fr.R[k] @ (self._guard_mass_r[k] + dom.mass_moment @ q)
+                grav -= float(moment @ g)
+            if self.F:
+                m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
+                kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
+                grav -= float((m * (self.x_full @ g)).sum())
+                speed = max(speed, float(np.sqrt((self.v_full * self.v_full).sum(1).max())))
+            try:
+                elastic = float(self.elastic_energy())
+            except (ArithmeticError, ValueError, RuntimeError):
+                elastic = np.nan
+            inverted = 0
+            if check_inversion:
+                tets = self._guard_tets()
+                ids, local = np.unique(tets, return_inverse=True)
+                inverted = inverted_tets(self.positions_of(ids), local.reshape(tets.shape))
+        finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
+        return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
+
+    def _guard_radii(self, k):
+        """(largest rest radius, largest per-vertex basis norm) of subspace domain k, cached."""
+        if not hasattr(self, "_guard_rs"):
+            self._guard_rs = [(float(np.linalg.norm(d.r_local, axis=1).max()),
+                               float(np.sqrt((d.U3 ** 2).sum(axis=(1, 2)).max()))) for d in self.subspace]
+            self._guard_mass_r = [d.mass @ d.r_local for d in self.subspace]
+        return self._guard_rs[k]
+
+    def _guard_tets(self):
+        """Global tets the guard checks for inversion (the ones the forces evaluate)."""
+        if not hasattr(self, "_guard_tet_list"):
+            parts = []
+            for dom in self.subspace:
+                fm = dom.forces
+                if getattr(fm, "tets", None) is None or len(fm.tets) == 0:
+                    continue
+                el = dom.sampled.elements if getattr(dom, "sampled", None) is not None else np.arange(len(fm.tets))
+                parts.append(dom.vertices[fm.tets[el]])
+            if self.coupling_kind == "element":
+                parts.append(self.body.tets[self.c_tets])
+            if self.F:
+                parts.append(self.body.tets[self.ff_elements])
+            self._guard_tet_list = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
+        return self._guard_tet_list
 
     def domain_poses(self):
         out = np.zeros((len(self.domain_kind), 7))
