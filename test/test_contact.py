@@ -124,3 +124,40 @@ def test_fast_collider_does_not_tunnel(kind):
                    "continuous collision detection)")
 def test_fast_collider_does_not_tunnel_through_jelly():
     _fast_ball_run("full", check_shadow=True, young=1e4)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_working_set_contact_correction_equals_full_lcp(sparse):
+    """contact_correction solves only for rows that can be active, yet gives the LCP on
+    all candidate rows: same multipliers and correction as solve_lcp with every row."""
+    import scipy.sparse as sp
+    from mdss_ros.contact.unilateral import contact_correction
+    rng = np.random.default_rng(3)
+    n, m = 60, 40
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    C = np.zeros((m, n))
+    for i in range(m):                                   # vertex-like rows: 3 DOFs each
+        cols = rng.choice(n, 3, replace=False)
+        C[i, cols] = rng.normal(size=3)
+    g = rng.normal(size=m) + 0.3                         # some rows violated, most not
+    solves = []
+
+    def resolve(rhs):
+        solves.append(rhs.shape[1])
+        return np.linalg.solve(A, rhs)
+
+    lam, corr, info = contact_correction(resolve, sp.csr_matrix(C) if sparse else C, g)
+    Y = np.linalg.solve(A, C.T)
+    lam_ref, _ = solve_lcp(C @ Y, g)
+    np.testing.assert_allclose(lam, lam_ref, atol=1e-10)
+    np.testing.assert_allclose(corr, Y @ lam_ref, atol=1e-10)
+    w = C @ corr + g
+    assert np.all(w >= -1e-10) and np.all(lam >= 0) and abs(lam @ w) < 1e-9
+    assert info["active"] > 0 and sum(solves) == info["working_set"] < m
+
+
+def test_working_set_contact_correction_without_violation_solves_nothing():
+    from mdss_ros.contact.unilateral import contact_correction
+    lam, corr, info = contact_correction(lambda b: pytest.fail("no solve expected"), np.eye(3), np.ones(3))
+    assert not lam.any() and not corr.any() and info["working_set"] == 0

@@ -935,13 +935,12 @@ class ReducedModel:
 
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
-        from ..contact.unilateral import solve_lcp
+        from ..contact.unilateral import contact_correction
         _, C, phi, _, _ = rows
-        Y = self._resolve(np.ascontiguousarray(C.T)).reshape(len(dQ), -1)
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
-        lam, _ = solve_lcp(C @ Y, C @ (Q + dQ) + phi, regularize=1e-9)
+        lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9)
         self._contact_lam = lam
-        return dQ + Y @ lam, lam
+        return dQ + corr, lam
 
     def step(self, f_ext, gravity=None, contact=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
