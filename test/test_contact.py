@@ -161,3 +161,22 @@ def test_working_set_contact_correction_without_violation_solves_nothing():
     from mdss_ros.contact.unilateral import contact_correction
     lam, corr, info = contact_correction(lambda b: pytest.fail("no solve expected"), np.eye(3), np.ones(3))
     assert not lam.any() and not corr.any() and info["working_set"] == 0
+
+
+def test_sphere_face_contacts_can_be_turned_off():
+    """A sphere touching a triangle's interior (between its vertices) gets a face contact
+    by default and none with face_contacts: false (vertex contacts only)."""
+    from mdss_ros.contact.colliders import make_collider
+    from mdss_ros.contact.unilateral import find_triangle_contacts
+    from mdss_ros.errors import SceneError
+    tri = np.array([[0, 1, 2]])
+    pos = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    spec = {"shape": "sphere", "radius": 0.1, "position": [0.0, -0.2, 0.09]}
+    on = find_triangle_contacts([make_collider("ball", spec)], pos, tri, margin=0.05)
+    off = find_triangle_contacts([make_collider("ball", dict(spec, face_contacts=False))], pos, tri, margin=0.05)
+    assert len(on[0]) == 1 and abs(on[3][0] + 0.01) < 1e-12
+    assert len(off[0]) == 0
+    with pytest.raises(SceneError, match="face_contacts"):
+        make_collider("ball", dict(spec, face_contacts="no"))
+    with pytest.raises(SceneError, match="unknown key"):
+        make_collider("floor", {"shape": "plane", "face_contacts": False})

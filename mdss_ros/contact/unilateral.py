@@ -142,8 +142,9 @@ def contact_wrenches(colliders, points, forces, which):
 
 
 def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3):
-    """Sphere colliders against surface triangles, where vertices alone let a sphere slip
-    through a face: the closest point of each nearby triangle to the sphere's centre.
+    """Sphere colliders (with face_contacts) against surface triangles, where vertices alone
+    let a sphere slip through a face: the closest point of each nearby triangle to the
+    sphere's centre.
 
     positions (S, 3) surface vertices; triangles (T, 3) into them. Returns (tri (k,),
     barycentric (k, 3), collider index (k,), phi (k,), normals (k, 3)); closest points at a
@@ -152,7 +153,7 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     from ..loads import closest_points_on_triangles
     out = [], [], [], [], []
     for c_idx, col in enumerate(colliders):
-        if col.shape != "sphere":
+        if col.shape != "sphere" or not col.face_contacts:
             continue
         tri_pos = positions[triangles]
         # Cheap cull by the triangles' bounding spheres.
