@@ -180,3 +180,16 @@ def test_sphere_face_contacts_can_be_turned_off():
         make_collider("ball", dict(spec, face_contacts="no"))
     with pytest.raises(SceneError, match="unknown key"):
         make_collider("floor", {"shape": "plane", "face_contacts": False})
+
+
+def test_reduced_newton_with_contact_stops_at_tolerance():
+    """The Newton loop of a reduced step in contact measures its residual net of the contact
+    forces (C^T lam), so a body resting on the floor converges before max iterations."""
+    scene = _block_scene({"floor": {"shape": "plane"}}, kind="reduced", domains={"count": 2}, modes=10,
+                         full_space_domains=["domain_1"], cubature={"samples": 0},
+                         integrator={"dt": 10.0, "newton_iterations": 10, "tolerance": 1e-6})
+    sim = Simulator(scene)
+    weight = sim.model.vertex_mass.sum() * 9.81
+    sim.step(3)
+    assert sim.stats()["newton_iterations"] < 10
+    assert abs(-sim.collider_wrench("floor")[2] - weight) < 0.01 * weight

@@ -1014,7 +1014,9 @@ class ReducedModel:
                 q, _, frames, x_full, _ = self._predict(Q, base)
                 G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
                 r = residual(Q, G)
-                if float(np.linalg.norm(r)) <= self.tolerance * max(r0, 1e-300):
+                # With contact the converged residual is the contact force C^T lam, not zero.
+                r_c = r - contact_rows[1].T @ lam if contact_rows is not None else r
+                if float(np.linalg.norm(r_c)) <= self.tolerance * max(r0, 1e-300):
                     break
         q, qd, frames, x_full, v_full = self._predict(Q, base)
         self.q, self.qd, self.frames = q, qd, frames
