@@ -193,3 +193,26 @@ def test_reduced_newton_with_contact_stops_at_tolerance():
     sim.step(3)
     assert sim.stats()["newton_iterations"] < 10
     assert abs(-sim.collider_wrench("floor")[2] - weight) < 0.01 * weight
+
+
+@pytest.mark.parametrize("kind", ["full", "reduced"])
+def test_static_press_from_rest_converges_to_the_tolerance(kind):
+    """A body at rest pushed only by a sphere (no gravity, no loads) starts Newton with a
+    zero residual; the tolerance is then measured against the contact forces' size, so the
+    step stops as soon as the residual net of the contact forces is below it (not after
+    max iterations or a round-off-sized update)."""
+    model = {"integrator": {"dt": 10.0, "newton_iterations": 12, "tolerance": 1e-6}}
+    if kind == "reduced":
+        model.update(kind="reduced", domains={"count": 2}, modes=10, cubature={"samples": 0},
+                     full_space_domains=["domain_0", "domain_1"])
+    scene = _block_scene({"ball": {"shape": "sphere", "radius": 0.1, "position": [0.0, 0.0, 0.198],
+                                   "face_contacts": False}}, **model)
+    scene["gravity"] = [0.0, 0.0, 0.0]
+    scene["pins"] = [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}]
+    sim = Simulator(scene)
+    sim.step()
+    st = sim.stats()
+    assert sim.collider_wrench("ball")[2] > 0
+    assert st["newton_iterations"] <= 4, st
+    if kind == "full":
+        assert 0.0 < st["residual"] <= 1e-6

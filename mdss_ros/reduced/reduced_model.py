@@ -996,6 +996,10 @@ class ReducedModel:
                 dQ = self._solve(*A, -r)
                 if contact_rows is not None:
                     dQ, lam = self._contact_solve(contact_rows, Q, dQ)
+                    if it == 0:
+                        # A body at rest pushed only by a collider has r0 = 0: measure the
+                        # tolerance against the contact forces' size instead.
+                        r0 = max(r0, float(np.linalg.norm(contact_rows[1].T @ lam)))
                 iterations += 1
                 step_len = 1.0
                 if self.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
