@@ -81,6 +81,8 @@ def test_verify_hertz_quick_report(tmp_path):
     assert full[-1]["l2_error"] < full[0]["l2_error"]
     assert full[-1]["max_error"] < 0.05
     assert data["within"]["full"]["5%"] == full[-1]["dofs"]
+    # Fig. 5: the force-controlled indentation at the fixed force approaches Hertz's.
+    assert abs(full[-1]["fixed_force"]["rel_error"]) < abs(full[0]["fixed_force"]["rel_error"])
     # The reduced model (full-space contact zone in a subspace block) on the same mesh as a
     # full model: fewer DOFs, and its far-field subspace adds at most 3 % to the error.
     red = reduced[0]
