@@ -213,3 +213,95 @@ def test_a_reach_region_selecting_nothing_is_a_scene_error():
                          kind="reduced", domains={"count": 2}, modes=6, cubature={"samples": 0})
     with pytest.raises(SceneError, match="colliders.ball.reach: the region selects no vertex"):
         Simulator(scene)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_working_set_contact_correction_equals_full_lcp(sparse):
+    """contact_correction solves only for rows that can be active, yet gives the LCP on
+    all candidate rows: same multipliers and correction as solve_lcp with every row."""
+    import scipy.sparse as sp
+    from mdss_ros.contact.unilateral import contact_correction
+    rng = np.random.default_rng(3)
+    n, m = 60, 40
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    C = np.zeros((m, n))
+    for i in range(m):                                   # vertex-like rows: 3 DOFs each
+        cols = rng.choice(n, 3, replace=False)
+        C[i, cols] = rng.normal(size=3)
+    g = rng.normal(size=m) + 0.3                         # some rows violated, most not
+    solves = []
+
+    def resolve(rhs):
+        solves.append(rhs.shape[1])
+        return np.linalg.solve(A, rhs)
+
+    lam, corr, info = contact_correction(resolve, sp.csr_matrix(C) if sparse else C, g)
+    Y = np.linalg.solve(A, C.T)
+    lam_ref, _ = solve_lcp(C @ Y, g)
+    np.testing.assert_allclose(lam, lam_ref, atol=1e-10)
+    np.testing.assert_allclose(corr, Y @ lam_ref, atol=1e-10)
+    w = C @ corr + g
+    assert np.all(w >= -1e-10) and np.all(lam >= 0) and abs(lam @ w) < 1e-9
+    assert info["active"] > 0 and sum(solves) == info["working_set"] < m
+
+
+def test_working_set_contact_correction_without_violation_solves_nothing():
+    from mdss_ros.contact.unilateral import contact_correction
+    lam, corr, info = contact_correction(lambda b: pytest.fail("no solve expected"), np.eye(3), np.ones(3))
+    assert not lam.any() and not corr.any() and info["working_set"] == 0
+
+
+def test_sphere_face_contacts_can_be_turned_off():
+    """A sphere touching a triangle's interior (between its vertices) gets a face contact
+    by default and none with face_contacts: false (vertex contacts only)."""
+    from mdss_ros.contact.colliders import make_collider
+    from mdss_ros.contact.unilateral import find_triangle_contacts
+    from mdss_ros.errors import SceneError
+    tri = np.array([[0, 1, 2]])
+    pos = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    spec = {"shape": "sphere", "radius": 0.1, "position": [0.0, -0.2, 0.09]}
+    on = find_triangle_contacts([make_collider("ball", spec)], pos, tri, margin=0.05)
+    off = find_triangle_contacts([make_collider("ball", dict(spec, face_contacts=False))], pos, tri, margin=0.05)
+    assert len(on[0]) == 1 and abs(on[3][0] + 0.01) < 1e-12
+    assert len(off[0]) == 0
+    with pytest.raises(SceneError, match="face_contacts"):
+        make_collider("ball", dict(spec, face_contacts="no"))
+    with pytest.raises(SceneError, match="unknown key"):
+        make_collider("floor", {"shape": "plane", "face_contacts": False})
+
+
+def test_reduced_newton_with_contact_stops_at_tolerance():
+    """The Newton loop of a reduced step in contact measures its residual net of the contact
+    forces (C^T lam), so a body resting on the floor converges before max iterations."""
+    scene = _block_scene({"floor": {"shape": "plane"}}, kind="reduced", domains={"count": 2}, modes=10,
+                         full_space_domains=["domain_1"], cubature={"samples": 0},
+                         integrator={"dt": 10.0, "newton_iterations": 10, "tolerance": 1e-6})
+    sim = Simulator(scene)
+    weight = sim.model.vertex_mass.sum() * 9.81
+    sim.step(3)
+    assert sim.stats()["newton_iterations"] < 10
+    assert abs(-sim.collider_wrench("floor")[2] - weight) < 0.01 * weight
+
+
+@pytest.mark.parametrize("kind", ["full", "reduced"])
+def test_static_press_from_rest_converges_to_the_tolerance(kind):
+    """A body at rest pushed only by a sphere (no gravity, no loads) starts Newton with a
+    zero residual; the tolerance is then measured against the contact forces' size, so the
+    step stops as soon as the residual net of the contact forces is below it (not after
+    max iterations or a round-off-sized update)."""
+    model = {"integrator": {"dt": 10.0, "newton_iterations": 12, "tolerance": 1e-6}}
+    if kind == "reduced":
+        model.update(kind="reduced", domains={"count": 2}, modes=10, cubature={"samples": 0},
+                     full_space_domains=["domain_0", "domain_1"])
+    scene = _block_scene({"ball": {"shape": "sphere", "radius": 0.1, "position": [0.0, 0.0, 0.198],
+                                   "face_contacts": False}}, **model)
+    scene["gravity"] = [0.0, 0.0, 0.0]
+    scene["pins"] = [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}]
+    sim = Simulator(scene)
+    sim.step()
+    st = sim.stats()
+    assert sim.collider_wrench("ball")[2] > 0
+    assert st["newton_iterations"] <= 4, st
+    if kind == "full":
+        assert 0.0 < st["residual"] <= 1e-6

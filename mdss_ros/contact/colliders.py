@@ -13,6 +13,12 @@ A collider is declared in the scene's `colliders` map and posed by the timeline,
 `reach` (optional, a vertex selector) marks the part of the body the collider can touch;
 in a reduced model it becomes a full-space domain `<name>_reach` (scene.model_config).
 
+A sphere also meets the surface triangles (a small sphere could slip through a face between
+vertices); `face_contacts: false` keeps vertex contacts only (node-to-surface, the usual
+discretisation of FE Hertz studies: faces may then cut into the sphere by about
+h^2 / (8 R) for surface edges h, and the static rest is unique; with face rows a coarse
+contact patch can switch its active faces from one static step to the next).
+
 `signed_distance(points)` returns phi (n,) (negative inside the collider) and the unit
 outward normal of the collider at the closest surface point (n, 3), both in the world
 frame; phi is differentiable with d phi / d x = normal away from the medial set.
@@ -29,7 +35,8 @@ SHAPES = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "box": ("
 
 @dataclass
 class Collider:
-    """name; shape; size parameters; pose (position (3,), orientation x y z w)."""
+    """name; shape; size parameters; pose (position (3,), orientation x y z w);
+    face_contacts: a sphere or capsule also meets surface triangles (unilateral.find_triangle_contacts)."""
 
     name: str
     shape: str
@@ -38,6 +45,7 @@ class Collider:
     half_extents: np.ndarray = field(default_factory=lambda: np.zeros(3))
     position: np.ndarray = field(default_factory=lambda: np.zeros(3))
     orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+    face_contacts: bool = True
 
     def set_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0)):
         q = np.asarray(orientation, dtype=np.float64)
@@ -105,11 +113,16 @@ def make_collider(name, spec):
     shape = spec.get("shape")
     if shape not in SHAPES:
         raise SceneError(f"{where}.shape: {shape!r} is not one of {', '.join(SHAPES)}")
-    allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach"}
+    allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach"} | (
+        {"face_contacts"} if shape in ("sphere", "capsule") else set())
     unknown = sorted(set(spec) - allowed)
     if unknown:
         raise SceneError(f"{where}: unknown key(s) {unknown} for a {shape} (allowed: {sorted(allowed)})")
     c = Collider(name=name, shape=shape)
+    if "face_contacts" in spec:
+        if not isinstance(spec["face_contacts"], bool):
+            raise SceneError(f"{where}.face_contacts: expected true or false, got {spec['face_contacts']!r}")
+        c.face_contacts = spec["face_contacts"]
     for key in SHAPES[shape]:
         if key not in spec:
             raise SceneError(f"{where}.{key}: required for a {shape}")
