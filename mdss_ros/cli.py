@@ -65,6 +65,8 @@ def cmd_run(args):
     print(f"mdss run: scene {sim.scene.name!r} ({sim.scene.source}): {st['kind']} model, "
           f"{st['vertices']} vertices, {st['tets']} tets, {st['dofs']} DOFs, "
           f"dt = {sim.dt:.6g} s, built in {time.perf_counter() - t0:.2f} s")
+    for w in sim.scene.warnings:
+        print(f"mdss run: warning: {w}")
     if args.explain:
         _print_explain(sim, "mdss run")
     steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))

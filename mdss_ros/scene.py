@@ -191,6 +191,7 @@ class Scene:
     data: dict
     source: str = "<dict>"
     base_dir: Path = field(default_factory=Path.cwd)
+    warnings: list = field(default_factory=list)     # problems that do not stop a run (printed by mdss run)
 
     def __getitem__(self, key):
         return self.data[key]
@@ -224,13 +225,15 @@ def load_scene(path_or_dict, overrides=None):
             raise SceneError(f"{path}: the file is empty")
     raw = apply_overrides(raw, overrides)
     data = _validate(raw, SCHEMA, "", source)
-    _check_sections(data, source)
+    warnings = _check_sections(data, source)
     _check_body(data, source, Path(base))
     _check_model(data["model"], source)
-    return Scene(data=data, source=source, base_dir=Path(base))
+    return Scene(data=data, source=source, base_dir=Path(base), warnings=warnings)
 
 
 def _check_sections(data, source):
+    """Checks needing more than one key; returns warnings (list of str)."""
+    warnings = []
     for i, pin in enumerate(data["pins"]):
         if not isinstance(pin, dict):
             raise SceneError(f"{source}: pins[{i}]: expected a region mapping (box, sphere, plane, indices)")
@@ -245,7 +248,8 @@ def _check_sections(data, source):
         if ev["topic"] not in TIMELINE_KEYS:
             raise SceneError(f"{source}: timeline[{i}].topic: unknown topic {ev['topic']!r} "
                              f"(wrench, point_force, collider_pose, clear_forces)")
-        _check_event(ev, f"{source}: timeline[{i}]", data)
+        _check_event(ev, f"{source}: timeline[{i}]", data, warnings)
+    return warnings
 
 
 # Per timeline topic: (required keys, optional keys) besides t and topic.
@@ -257,7 +261,7 @@ TIMELINE_KEYS = {
 }
 
 
-def _check_event(ev, where, data):
+def _check_event(ev, where, data, warnings):
     """Keys, vectors and names of one timeline event, so a typo fails on load, not mid-run."""
     required, optional = TIMELINE_KEYS[ev["topic"]]
     allowed = {"t", "topic", *required, *optional}
@@ -277,12 +281,14 @@ def _check_event(ev, where, data):
             raise SceneError(f"{where}.orientation: expected a non-zero quaternion [x, y, z, w], got {q!r}")
     if "duration" in ev and (not isinstance(ev["duration"], _NUM) or isinstance(ev["duration"], bool)):
         raise SceneError(f"{where}.duration: expected a number of seconds, got {ev['duration']!r}")
+    # An unknown name is a warning, not an error: a timeline may carry an input the node
+    # must reject (recordings test exactly that); `mdss run` prints the warnings first.
     if ev["topic"] == "wrench" and ev["frame_id"] not in data["handles"]:
-        raise SceneError(f"{where}.frame_id: unknown handle {ev['frame_id']!r} "
-                         f"(scene handles: {sorted(data['handles'])})")
+        warnings.append(f"{where}.frame_id: unknown handle {ev['frame_id']!r} "
+                        f"(scene handles: {sorted(data['handles'])}); the input will be rejected")
     if ev["topic"] == "collider_pose" and ev["name"] not in data["colliders"]:
-        raise SceneError(f"{where}.name: unknown collider {ev['name']!r} "
-                         f"(scene colliders: {sorted(data['colliders'])})")
+        warnings.append(f"{where}.name: unknown collider {ev['name']!r} "
+                        f"(scene colliders: {sorted(data['colliders'])}); the input will be rejected")
 
 
 def _check_body(data, source, base_dir):
