@@ -246,12 +246,24 @@ def test_cli_run_explain_prints_the_account(tmp_path):
     from mdss_ros.cli import main
     scene = tmp_path / "mixed.yaml"
     import yaml
-    scene.write_text(yaml.safe_dump(_MIXED))
+    scene.write_text(yaml.safe_dump(_MIXED, sort_keys=False))
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert main(["run", str(scene), "--steps", "2", "--explain"]) == 0
     text = out.getvalue()
     assert "what was built and why" in text and "domain root" in text and "no rigid DOFs" in text
+
+
+def test_cli_precompute_summary_ends_with_the_account(tmp_path):
+    from mdss_ros.cli import main
+    scene = tmp_path / "mixed.yaml"
+    import yaml
+    scene.write_text(yaml.safe_dump(_MIXED, sort_keys=False))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["precompute", str(scene), "--cache-dir", str(tmp_path / "cache")]) == 0
+    text = out.getvalue()
+    assert "mdss precompute: what was built and why" in text and "FULL SPACE" in text
 
 
 def test_stiffness_pattern_has_a_diagonal_for_a_vertex_without_elements():
