@@ -301,7 +301,7 @@ def _check_body(data, source, base_dir):
     if "file" in mesh:
         if not isinstance(mesh["file"], str):
             raise SceneError(f"{where}.file: expected a path, got {mesh['file']!r}")
-        path = base_dir / os.path.expanduser(mesh["file"])
+        path = base_dir / mesh["file"]
         if not path.is_file():
             raise SceneError(f"{where}.file: mesh file {str(path)!r} not found "
                              f"(relative paths are relative to the scene file's folder)")

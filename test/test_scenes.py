@@ -39,7 +39,7 @@ FAST = {
     "cantilever": ({"body.mesh.cell": 0.05, "model.modes": 6, "model.cubature": _cubature()}, 60),
     "caterpillar": ({"body.mesh.cell": 0.02, "model.modes": 4, "model.cubature": _cubature()}, 50),
     "hammock": ({"body.mesh.cell": 0.1, "body.mesh.layers": 1, "model.modes": 6, "model.cubature": _cubature()},
-                125),
+                140),
     "hertz_block": ({"body.mesh.cell_coarse": 0.05, "body.mesh.cell_fine": 0.01, "body.mesh.radius": 0.0,
                      "model.modes": 6, "model.cubature": _cubature(interface=False)}, 60),
     "octopus": ({"body.mesh": {"generator": "voxels", "cell": 0.03, "primitives": octopus_primitives()},
@@ -109,6 +109,7 @@ def test_reduced_resolution_scene_runs_its_timeline(name):
 
 # ---------------------------------------------------------------- slow: the full scenes
 @pytest.mark.slow
+@pytest.mark.timeout(3600)            # includes the precompute: up to 10 min per scene on 2 busy cores
 @pytest.mark.parametrize("name", SCENES)
 def test_full_scene_runs_its_timeline(name):
     """Each scene as written (full mesh, modes and cubature; precompute built here), its
