@@ -49,16 +49,20 @@ FAST = {
 
 
 def _play(sim, steps):
-    """Play the scene's timeline for `steps` steps; every position must stay finite."""
+    """Play the scene's timeline for `steps` steps; every position must stay finite.
+    Returns the final positions (n_verts, 3) and the largest surface displacement seen."""
     player = TimelinePlayer(sim.scene["timeline"])
+    rest = sim.rest_positions()[sim.surface_vertex_ids()]
+    moved = 0.0
     for k in range(steps):
         player.apply_due(sim)
         sim.step()
         x = sim.surface_positions()
         assert np.all(np.isfinite(x)), f"{sim.scene.name}: non-finite positions at step {k + 1}"
+        moved = max(moved, float(np.linalg.norm(x - rest, axis=1).max()))
     x = sim.vertex_positions()
     assert np.all(np.isfinite(x))
-    return x
+    return x, moved
 
 
 def test_every_scene_of_the_issue_is_there():
@@ -91,11 +95,9 @@ def _model_facts(sim):
 def test_reduced_resolution_scene_runs_its_timeline(name):
     overrides, steps = FAST[name]
     sim = Simulator(name, overrides=overrides)
-    rest = sim.rest_positions()
-    x = _play(sim, steps)
+    x, moved = _play(sim, steps)
     if sim.model.kind == "reduced":
         _model_facts(sim)
-    moved = np.linalg.norm(x - rest, axis=1).max()
     assert moved > 1e-4, f"{name}: the timeline had no effect (max displacement {moved:.2e} m)"
     for c in sim.colliders.values():                       # declared colliders never sink into the body
         assert c.signed_distance(sim.surface_positions())[0].min() > -0.25 * sim._contact_spec()["margin"]
@@ -116,8 +118,8 @@ def test_full_scene_runs_its_timeline(name):
     timeline played to the end, or 300 steps for the longer ones."""
     sim = Simulator(name)
     steps = min(int(round(sim.scene["duration"] / sim.dt)), 300)
-    x = _play(sim, steps)
-    assert np.linalg.norm(x - sim.rest_positions(), axis=1).max() > 1e-4
+    _, moved = _play(sim, steps)
+    assert moved > 1e-3, f"{name}: the timeline had no visible effect (max displacement {moved:.2e} m)"
 
 
 # ---------------------------------------------------------------- bad scene files
