@@ -67,17 +67,29 @@ def build_body(scene):
     surface = extract_surface(mesh.tets)
     pinned = [np.empty(0, dtype=np.int64)]
     for i, region in enumerate(scene["pins"]):
-        ids = select_vertices(mesh.vertices, region, surface.vertex_ids)
+        ids = _select(mesh.vertices, region, surface.vertex_ids, f"{src}: pins[{i}]")
         if ids.size == 0:
-            raise SceneError(f"{src}: pins[{i}]: the region {region} selects no vertex of the body")
+            raise SceneError(f"{src}: pins[{i}]: the region {region} selects no vertex of the body "
+                             f"(body bounds {_bounds(mesh.vertices)})")
         pinned.append(ids)
     handles = {}
     for name, region in scene["handles"].items():
-        ids = select_vertices(mesh.vertices, region, surface.vertex_ids)
+        ids = _select(mesh.vertices, region, surface.vertex_ids, f"{src}: handles.{name}")
         if ids.size == 0:
-            raise SceneError(f"{src}: handles.{name}: the region {region} selects no vertex of the body "
-                             f"(body bounds {mesh.vertices.min(0).round(4).tolist()} .. "
-                             f"{mesh.vertices.max(0).round(4).tolist()})")
+            raise SceneError(f"{src}: handles.{name}: the region {region} selects no vertex of the body, "
+                             f"so it lies outside the body (body bounds {_bounds(mesh.vertices)})")
         handles[name] = ids
     return Body(vertices=mesh.vertices, tets=mesh.tets, surface=surface,
                 pinned=np.unique(np.concatenate(pinned)), handles=handles, material=material)
+
+
+def _select(vertices, region, surface_ids, where):
+    """select_vertices with the scene key in front of a bad-selector message."""
+    try:
+        return select_vertices(vertices, region, surface_ids)
+    except SceneError as err:
+        raise SceneError(f"{where}: {err}") from err
+
+
+def _bounds(vertices):
+    return f"{vertices.min(0).round(4).tolist()} .. {vertices.max(0).round(4).tolist()}"

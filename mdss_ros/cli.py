@@ -65,6 +65,10 @@ def cmd_run(args):
     print(f"mdss run: scene {sim.scene.name!r} ({sim.scene.source}): {st['kind']} model, "
           f"{st['vertices']} vertices, {st['tets']} tets, {st['dofs']} DOFs, "
           f"dt = {sim.dt:.6g} s, built in {time.perf_counter() - t0:.2f} s")
+    for w in sim.scene.warnings:
+        print(f"mdss run: warning: {w}")
+    if args.explain:
+        _print_explain(sim, "mdss run")
     steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))
     if rec is not None:
         rec.start(sim)
@@ -114,6 +118,13 @@ def cmd_run(args):
         Path(args.json).write_text(json.dumps(summary, indent=2))
         print(f"mdss run: summary written to {args.json}")
     return 128 + rec.stop_signal if rec is not None and rec.stop_signal else 0
+
+
+def _print_explain(sim, prefix):
+    """Print Simulator.explain(): what the model took and why."""
+    print(f"{prefix}: what was built and why:")
+    for line in sim.explain():
+        print(f"  {line}")
 
 
 def cmd_replay(args):
@@ -359,9 +370,11 @@ def cmd_precompute(args):
         for k, d in enumerate(info.get("domains", [])):
             print(f"  cubature domain {k}: {d['samples']} of {d['elements']} elements, "
                   f"held-out error {d.get('held_out_error', float('nan')):.2e}")
+    _print_explain(sim, "mdss precompute")
     if args.json:
         Path(args.json).write_text(json.dumps({"scene": sim.scene.name, "seconds": total,
-                                               "events": cache.events, "stats": st}, indent=2, default=str))
+                                               "events": cache.events, "stats": st,
+                                               "explain": sim.explain()}, indent=2, default=str))
     return 0
 
 
@@ -380,6 +393,8 @@ def main(argv=None):
     p.add_argument("--mcap", help="record an MCAP file")
     p.add_argument("--rrd", help="record a rerun .rrd file")
     p.add_argument("--json", help="write a JSON summary here")
+    p.add_argument("--explain", action="store_true",
+                   help="print what the model took and why (domains, pins, rigid DOFs, cubature, contact, outputs)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("replay", help="replay a recorded run's inputs headless; --check compares its outputs")

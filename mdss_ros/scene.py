@@ -205,6 +205,7 @@ class Scene:
     data: dict
     source: str = "<dict>"
     base_dir: Path = field(default_factory=Path.cwd)
+    warnings: list = field(default_factory=list)     # problems that do not stop a run (printed by mdss run)
 
     def __getitem__(self, key):
         return self.data[key]
@@ -238,11 +239,15 @@ def load_scene(path_or_dict, overrides=None):
             raise SceneError(f"{path}: the file is empty")
     raw = apply_overrides(raw, overrides)
     data = _validate(raw, SCHEMA, "", source)
-    _check_sections(data, source)
-    return Scene(data=data, source=source, base_dir=Path(base))
+    warnings = _check_sections(data, source)
+    _check_body(data, source, Path(base))
+    _check_model(data["model"], source)
+    return Scene(data=data, source=source, base_dir=Path(base), warnings=warnings)
 
 
 def _check_sections(data, source):
+    """Checks needing more than one key; returns warnings (list of str)."""
+    warnings = []
     from .budget import check_budget
     data["model"]["budget"] = check_budget(data["model"]["budget"], source)
     for i, pin in enumerate(data["pins"]):
@@ -256,9 +261,93 @@ def _check_sections(data, source):
             raise SceneError(f"{source}: timeline[{i}]: each event needs t and topic, got {ev!r}")
         if not isinstance(ev["t"], _NUM) or ev["t"] < 0:
             raise SceneError(f"{source}: timeline[{i}].t: expected a time >= 0, got {ev['t']!r}")
-        if ev["topic"] not in ("wrench", "point_force", "collider_pose", "clear_forces"):
+        if ev["topic"] not in TIMELINE_KEYS:
             raise SceneError(f"{source}: timeline[{i}].topic: unknown topic {ev['topic']!r} "
                              f"(wrench, point_force, collider_pose, clear_forces)")
+        _check_event(ev, f"{source}: timeline[{i}]", data, warnings)
+    return warnings
+
+
+# Per timeline topic: (required keys, optional keys) besides t and topic.
+TIMELINE_KEYS = {
+    "wrench": (("frame_id",), ("force", "torque")),
+    "point_force": (("point", "force"), ("duration",)),
+    "collider_pose": (("name", "position"), ("orientation",)),
+    "clear_forces": ((), ()),
+}
+
+
+def _check_event(ev, where, data, warnings):
+    """Keys, vectors and names of one timeline event, so a typo fails on load, not mid-run."""
+    required, optional = TIMELINE_KEYS[ev["topic"]]
+    allowed = {"t", "topic", *required, *optional}
+    unknown = sorted(set(ev) - allowed)
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {unknown} for topic {ev['topic']} (allowed: {sorted(allowed)})")
+    for key in required:
+        if key not in ev:
+            raise SceneError(f"{where}.{key}: required for topic {ev['topic']}")
+    for key in ("force", "torque", "point", "position"):
+        if key in ev:
+            _vec3(ev[key], f"{where}.{key}")
+    if "orientation" in ev:
+        q = ev["orientation"]
+        if (not isinstance(q, (list, tuple)) or len(q) != 4
+                or not all(isinstance(v, _NUM) and not isinstance(v, bool) for v in q) or not any(q)):
+            raise SceneError(f"{where}.orientation: expected a non-zero quaternion [x, y, z, w], got {q!r}")
+    if "duration" in ev and (not isinstance(ev["duration"], _NUM) or isinstance(ev["duration"], bool)):
+        raise SceneError(f"{where}.duration: expected a number of seconds, got {ev['duration']!r}")
+    # An unknown name is a warning, not an error: a timeline may carry an input the node
+    # must reject (recordings test exactly that); `mdss run` prints the warnings first.
+    if ev["topic"] == "wrench" and ev["frame_id"] not in data["handles"]:
+        warnings.append(f"{where}.frame_id: unknown handle {ev['frame_id']!r} "
+                        f"(scene handles: {sorted(data['handles'])}); the input will be rejected")
+    if ev["topic"] == "collider_pose" and ev["name"] not in data["colliders"]:
+        warnings.append(f"{where}.name: unknown collider {ev['name']!r} "
+                        f"(scene colliders: {sorted(data['colliders'])}); the input will be rejected")
+
+
+def _check_body(data, source, base_dir):
+    """Mesh source and material, checked before anything is built: a missing mesh file or a
+    bad modulus fails at load with the key, not after minutes of meshing."""
+    mesh = data["body"]["mesh"]
+    where = f"{source}: body.mesh"
+    if ("file" in mesh) == ("generator" in mesh):
+        raise SceneError(f"{where}: needs exactly one of 'generator' or 'file', got keys {sorted(mesh)}")
+    if "file" in mesh:
+        if not isinstance(mesh["file"], str):
+            raise SceneError(f"{where}.file: expected a path, got {mesh['file']!r}")
+        path = base_dir / mesh["file"]
+        if not path.is_file():
+            raise SceneError(f"{where}.file: mesh file {str(path)!r} not found "
+                             f"(relative paths are relative to the scene file's folder)")
+    from .fem.materials import make_material
+    try:
+        make_material(data["body"]["material"])
+    except SceneError as err:
+        raise SceneError(f"{source}: body.material: {err}") from err
+
+
+# Keys the reduced model reads from its sub-sections (it checks values when it builds).
+_MODEL_SUBKEYS = {
+    "domains": {"count", "regions", "seed"},
+    "cubature": {"samples", "tolerance", "interface", "interface_samples", "training", "seed"},
+    "coupling": {"kind", "stiffness"},
+}
+
+
+def _check_model(model, source):
+    """Unknown keys in model.domains / cubature / coupling, and domains given both ways."""
+    for section, allowed in _MODEL_SUBKEYS.items():
+        value = model[section]
+        if not isinstance(value, dict):
+            raise SceneError(f"{source}: model.{section}: expected a mapping, got {value!r}")
+        unknown = sorted(set(value) - allowed)
+        if unknown:
+            raise SceneError(f"{source}: unknown key(s) {', '.join(f'model.{section}.' + k for k in unknown)} "
+                             f"(allowed: {', '.join(sorted(allowed))})")
+    if "count" in model["domains"] and "regions" in model["domains"]:
+        raise SceneError(f"{source}: model.domains: give either count or regions, not both")
 
 
 def model_config(scene):

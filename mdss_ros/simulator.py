@@ -301,6 +301,38 @@ class Simulator:
             return np.zeros(6)
         return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])[name]
 
+    def explain(self):
+        """What was built for this scene and why (list of str): body, the model's own account
+        (ReducedModel.explain), contact and per-step outputs. `mdss run --explain` prints it."""
+        b = self.body
+        sc = self.scene
+        lines = [f"scene {sc.name!r} ({sc.source}): {len(b.vertices)} vertices, {len(b.tets)} tets, "
+                 f"{len(b.surface.vertex_ids)} surface vertices, {b.pinned.size} pinned, "
+                 f"handles {sorted(b.handles) or 'none'}, dt = {self.dt:.6g} s"]
+        if hasattr(self.model, "explain"):
+            lines += self.model.explain()
+        else:
+            lines.append(f"{self.model.kind} model: every vertex an unknown, {self.model.n_dofs} DOFs "
+                         f"({b.pinned.size} pinned vertices removed), no domains or modes")
+        if self.colliders:
+            shapes = ", ".join(f"{n} ({c.shape})" for n, c in self.colliders.items())
+            spheres = any(c.shape == "sphere" for c in self.colliders.values())
+            lines.append(f"contact: built only for the declared colliders: {shapes}; candidates are surface "
+                         f"vertices within {self._contact_spec()['margin']:.3g} m (a mean surface edge)"
+                         + ("; sphere colliders also test surface faces" if spheres else ""))
+        else:
+            lines.append("contact: no colliders declared, so no contact search or LCP in the step "
+                         "(declare one under colliders: to turn it on)")
+        watched = hasattr(self.model, "watch")
+        lines.append(f"outputs per step: {'only ' if watched else ''}the {len(b.surface.vertex_ids)} surface "
+                     f"vertices of {len(b.vertices)} are reconstructed for publishing; all vertices, energies, "
+                     f"contacts and wrenches only when asked (vertex_positions(), energy(), ...)")
+        iv = sc["initial_velocity"]
+        lines.append(f"gravity {sc['gravity']}" + (f"; initial velocity linear {iv['linear']} angular "
+                                                    f"{iv['angular']}" if any(iv['linear']) or any(iv['angular'])
+                                                    else ""))
+        return lines
+
     def stats(self):
         extra = {"budget": {k: self.budget[k] for k in ("goal", "target", "met")}
                  | {"modes": self.budget["chosen"]["modes"]}} if self.budget else {}

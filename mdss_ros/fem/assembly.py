@@ -65,7 +65,9 @@ def stiffness_pattern(tets, n_verts, pinned=()):
     cols = np.tile(edofs, (1, 12))                         # entry r*12+c -> col of c
     valid = (rows >= 0) & (cols >= 0)
     keys = rows * n_free + cols
-    uniq = np.unique(keys[valid])
+    # Every free DOF gets its diagonal entry, also a vertex no element references (a
+    # domain vertex whose tets are all coupling elements): diagonal[] must index it.
+    uniq = np.union1d(keys[valid], np.arange(n_free, dtype=np.int64) * (n_free + 1))
     indptr = np.searchsorted(uniq // n_free, np.arange(n_free + 1)).astype(np.int64)
     indices = (uniq % n_free).astype(np.int64)
     scatter = np.full(keys.shape, -1, dtype=np.int64)

@@ -1265,6 +1265,76 @@ class ReducedModel:
     def domain_names(self):
         return list(self.partition.names)
 
+    def explain(self):
+        """What the model took and why, one line per choice (list of str; `mdss run --explain`).
+
+        Domains (where they came from, which hold pins and so carry no rigid DOFs and no
+        fictitious-force terms), the free-body treatment, cubature per domain and interface,
+        full-space domains and the linear solver."""
+        names = self.partition.names
+        dcfg = self.cfg.get("domains") or {"count": 1}
+        how = (f"user regions ({', '.join(map(str, dcfg['regions']))})" if "regions" in dcfg
+               else f"METIS split into {dcfg.get('count', 1)} balanced contiguous parts (model.domains.count)")
+        lines = [f"reduced model: {len(self.domain_kind)} domains from {how}; {self.n_gen} DOFs "
+                 f"({self.S} subspace + {self.F} full-space)"]
+        pinned = np.zeros(len(self.body.vertices), dtype=bool)
+        pinned[self.body.pinned] = True
+        cub = {k: d for k, d in enumerate(self.cubature_info.get("domains", []))}
+        for i, (kind, k) in enumerate(self.domain_kind):
+            verts = self.partition.domain_vertices[i]
+            n_pin = int(pinned[verts].sum())
+            head = f"  domain {names[i]}: {len(verts)} vertices, {len(self.partition.domain_elements[i])} elements"
+            if kind == "full":
+                fd = self.full[k]
+                lines.append(f"{head}; FULL SPACE (model.full_space_domains): {fd.n_dofs} DOFs, world frame, "
+                             f"no modes or frame" + (f", {n_pin} pinned vertices dropped" if n_pin else ""))
+                continue
+            dom = self.subspace[k]
+            if dom.movable:
+                rigid = ("frame + 6 rigid DOFs (no pins); fictitious forces (Coriolis, Euler, "
+                         "centrifugal) built from its precomputed tensors")
+            else:
+                rigid = (f"holds {n_pin} pinned vertices: modes only, no rigid DOFs, no fictitious-force "
+                         f"terms (its frame cannot move or rotate)")
+            c = cub.get(k)
+            elems = (f"cubature {c['samples']} of {c['elements']} elements" if c
+                     else f"exact forces over all {len(self.partition.domain_elements[i])} elements")
+            lines.append(f"{head}; r = {dom.r} modes; {rigid}; {elems}")
+        if not self.full:
+            lines.append("full-space domains: none (model.full_space_domains is empty)")
+        n_c = len(self.partition.coupling_elements)
+        iface = self.cubature_info.get("interface")
+        if self.coupling_kind != "element":
+            lines.append(f"coupling: springs on the edges of {n_c} coupling elements (model.coupling.kind)")
+        elif iface:
+            n_s = len(self.c_tets) - int(iface.get("exact_elements", 0))
+            lines.append(f"coupling: {n_c} coupling elements; {iface['scheme']} interface cubature: {n_s} weighted "
+                         f"samples on {len(iface['interfaces'])} two-domain interfaces, "
+                         f"{iface.get('exact_elements', 0)} elements touching 3+ domains exact")
+        else:
+            lines.append(f"coupling: {n_c} coupling elements evaluated exactly every step "
+                         f"(model.cubature.interface: exact)")
+        if self.cubature_info.get("samples"):
+            src = self.cubature_info.get("training_source", "?")
+            lines.append(f"cubature: {self.cubature_info['samples']} samples per domain requested, trained on "
+                         f"{self.cubature_info.get('training_poses', '?')} poses from the {src} model"
+                         + (" (loaded from the cache)" if self.cubature_info.get("cached") else ""))
+        else:
+            lines.append("cubature: off (model.cubature.samples: 0): every domain element every step")
+        if self.body.pinned.size == 0 and self.movable.all():
+            lines.append("free body (no pins): the mean rigid motion is integrated exactly about the mass "
+                         "centre and angular momentum is rebalanced each step")
+        else:
+            lines.append(f"held by {self.body.pinned.size} pinned vertices: no whole-body rigid motion step")
+        if self.F == 0:
+            order = [self.subspace[j].name for j in self.order]
+            lines.append(f"solver: dense block Cholesky over {len(self.subspace)} domain blocks, elimination "
+                         f"order {order}" + (" (LU: non-uniform interface cubature is unsymmetric)"
+                                             if self.unsymmetric else ""))
+        else:
+            lines.append(f"solver: sparse {self.sparse_solver.backend} on the joint subspace + full-space system")
+        return lines
+
     def cut_elements(self, tet_ids):
         """Remove elements of full-space domains (cutting); returns how many were removed."""
         tet_ids = np.asarray(tet_ids, dtype=np.int64)
