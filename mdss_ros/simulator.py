@@ -316,13 +316,30 @@ class Simulator:
                          f"({b.pinned.size} pinned vertices removed), no domains or modes")
         if self.colliders:
             shapes = ", ".join(f"{n} ({c.shape})" for n, c in self.colliders.items())
-            spheres = any(c.shape == "sphere" for c in self.colliders.values())
+            faces = [n for n, c in self.colliders.items()
+                     if c.shape in ("sphere", "capsule") and getattr(c, "face_contacts", True)]
             lines.append(f"contact: built only for the declared colliders: {shapes}; candidates are surface "
                          f"vertices within {self._contact_spec()['margin']:.3g} m (a mean surface edge)"
-                         + ("; sphere colliders also test surface faces" if spheres else ""))
+                         + (f"; {', '.join(faces)} also test surface faces" if faces else ""))
+            reach = [n for n, spec in sc["colliders"].items() if isinstance(spec, dict) and spec.get("reach")]
+            if reach:
+                lines.append(f"collider reach: {', '.join(f'{n}_reach' for n in reach)} simulated in full space "
+                             f"(the region each collider can touch); the rest of the body stays as the model says")
         else:
             lines.append("contact: no colliders declared, so no contact search or LCP in the step "
                          "(declare one under colliders: to turn it on)")
+        if self.budget:
+            bud = self.budget
+            cands = ", ".join(f"{c['modes']} modes {c['step_ms']:.3g} ms" + (f" {100 * c['rms_rel']:.3g} %"
+                                                                           if "rms_rel" in c else "")
+                              for c in bud["candidates"])
+            lines.append(f"budget {bud['goal']} <= {bud['target']:g}: chose {bud['chosen']['modes']} modes per "
+                         f"domain ({'met' if bud['met'] else 'NOT met: closest candidate'}; "
+                         f"{'cached probe' if bud.get('cached') else 'probe'} of {cands})")
+        guard = self.scene["model"]["guard"]
+        lines.append("stability guard: " + ("on (every step checked for NaN, energy growth, speed and new "
+                                              "inversions; a bad step is rolled back and retried)"
+                                              if guard["enabled"] else "off (model.guard.enabled: false)"))
         watched = hasattr(self.model, "watch")
         lines.append(f"outputs per step: {'only ' if watched else ''}the {len(b.surface.vertex_ids)} surface "
                      f"vertices of {len(b.vertices)} are reconstructed for publishing; all vertices, energies, "
