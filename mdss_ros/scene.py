@@ -358,6 +358,11 @@ def model_config(scene):
     model = copy.deepcopy(scene["model"])
     if model["kind"] != "reduced":
         return model
+    regions = (model.get("domains") or {}).get("regions")
+    if isinstance(regions, dict):
+        # The first region to select a vertex wins, so their order is an input of the
+        # partition; cache keys sort dict keys, so the order is also kept as a list.
+        model["domains"]["region_order"] = list(regions)
     reach = {f"{name}_reach": spec["reach"] for name, spec in scene["colliders"].items()
              if isinstance(spec, dict) and spec.get("reach") is not None}
     if reach:

@@ -72,3 +72,21 @@ def test_cache_status_reports_missing_then_hit(tmp_path):
     Simulator(scene, cache=PrecomputeCache(tmp_path))
     after = cache_status(scene, PrecomputeCache(tmp_path))
     assert after["hit"] and after["estimate_s"] is None and after["path"].endswith(".npz")
+
+
+def test_region_order_is_part_of_the_bases_key():
+    """The first region to select a vertex wins, so two scenes listing the same regions in
+    another order are different partitions and must not share cached bases."""
+    from mdss_ros.body import build_body
+    from mdss_ros.precompute import bases_cache_key
+    from mdss_ros.scene import load_scene, model_config
+    a = {"left": {"box": [[-1, -1, -1], [0.25, 1, 1]]}, "right": {"box": [[0.15, -1, -1], [1, 1, 1]]}}
+    b = dict(reversed(list(a.items())))
+    keys = []
+    for regions in (a, b):
+        scene = load_scene({"name": "t", "body": {"mesh": {"generator": "box", "size": [0.4, 0.1, 0.1], "cell": 0.05},
+                                                  "material": {"model": "stvk", "young": 1e5, "poisson": 0.3,
+                                                               "density": 1000}},
+                            "model": {"kind": "reduced", "domains": {"regions": regions}, "modes": 4}})
+        keys.append(bases_cache_key(build_body(scene), model_config(scene)))
+    assert keys[0] != keys[1]
