@@ -583,14 +583,7 @@ class ReducedModel:
     def positions_of(self, ids, q=None, frames=None, x_full=None):
         """World positions (len(ids), 3) of the given global vertex ids."""
         if q is None and frames is None and x_full is None and ids is getattr(self, "_plan_ids", None):
-            out = np.empty((len(ids), 3))
-            for kind, k, sel, U_rows, r_rows in self._plan:
-                if kind == "sub":
-                    p = r_rows + (U_rows @ self.q[k]).reshape(-1, 3)
-                    out[sel] = self.frames.c[k] + p @ self.frames.R[k].T
-                else:
-                    out[sel] = self.x_full[ids[sel]]
-            return out
+            return self._planned_positions(ids, self._plan)
         q = self.q if q is None else q
         frames = self.frames if frames is None else frames
         x_full = self.x_full if x_full is None else x_full
@@ -605,6 +598,17 @@ class ReducedModel:
                 out[sel] = self._domain_world(k, self.vertex_local[ids[sel]], q, frames)
             else:
                 out[sel] = x_full[ids[sel]]
+        return out
+
+    def _planned_positions(self, ids, plan):
+        """Current positions of ids through an _output_plan of them (one matvec per domain)."""
+        out = np.empty((len(ids), 3))
+        for kind, k, sel, U_rows, r_rows in plan:
+            if kind == "sub":
+                p = r_rows + (U_rows @ self.q[k]).reshape(-1, 3)
+                out[sel] = self.frames.c[k] + p @ self.frames.R[k].T
+            else:
+                out[sel] = self.x_full[ids[sel]]
         return out
 
     def watch(self, ids):
@@ -1011,8 +1015,7 @@ class ReducedModel:
         if implicit:
             coriolis, centrifugal = self._fictitious_matrices(self.frames)
             Qn = self._modal_coriolis_rotate(coriolis, Qn)
-        G, K_ss, K_sI, K_ff, energy, J, x_I = self._evaluate(self.q, self.frames, self.x_full)
-        timing = dict(self.timing)
+        (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
         M_ss = self._mass_blocks(self.frames, predicted=True)
         D = (self.alpha * M_ss + self.beta * K_ss,
              self.beta * K_sI if self.F else None,
@@ -1167,7 +1170,23 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ outputs
     def elastic_energy(self):
-        return self._evaluate(self.q, self.frames, self.x_full, want_hessian=False)[4]
+        # The evaluation at the current state is the one the next step starts from: the
+        # stability guard's energy check after a step costs the next step nothing.
+        return self._start_evaluation()[0][4]
+
+    def _start_evaluation(self, take=False):
+        """((G, K_ss, K_sI, K_ff, energy, J, x_I), timing) of _evaluate at the current state,
+        computed once per state: the cache holds the state objects it was computed from
+        (every step and set_state replace them) and is dropped when a step takes it."""
+        state = (self.q, *self.q, self.frames, self.x_full)
+        version = getattr(self, "_cut_version", 0)
+        c = getattr(self, "_start_eval", None)
+        if (c is None or c[3] != version or len(c[0]) != len(state)
+                or not all(a is b for a, b in zip(c[0], state))):
+            result = self._evaluate(self.q, self.frames, self.x_full)
+            c = (state, result, dict(self.timing), version)
+        self._start_eval = None if take else c
+        return c[1], c[2]
 
     def kinetic_energy(self):
         v = self.vertex_velocities()
@@ -1219,9 +1238,8 @@ class ReducedModel:
                 elastic = np.nan
             inverted = 0
             if check_inversion:
-                tets = self._guard_tets()
-                ids, local = np.unique(tets, return_inverse=True)
-                inverted = inverted_tets(self.positions_of(ids), local.reshape(tets.shape))
+                ids, local, plan = self._guard_tets()
+                inverted = inverted_tets(self._planned_positions(ids, plan), local)
         finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 
@@ -1234,7 +1252,8 @@ class ReducedModel:
         return self._guard_rs[k]
 
     def _guard_tets(self):
-        """Global tets the guard checks for inversion (the ones the forces evaluate)."""
+        """(vertex ids (k,), tets (m, 4) into them, their output plan) the guard checks for
+        inversion: the elements the forces evaluate."""
         if not hasattr(self, "_guard_tet_list"):
             parts = []
             for dom in self.subspace:
@@ -1247,7 +1266,9 @@ class ReducedModel:
                 parts.append(self.body.tets[self.c_tets])
             if self.F:
                 parts.append(self.body.tets[self.ff_elements])
-            self._guard_tet_list = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
+            tets = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
+            ids, local = np.unique(tets, return_inverse=True)
+            self._guard_tet_list = (ids, local.reshape(tets.shape), self._output_plan(ids))
         return self._guard_tet_list
 
     def domain_poses(self):
@@ -1343,4 +1364,5 @@ class ReducedModel:
             hit = np.isin(fd.elements, tet_ids) & fd.alive
             fd.alive[hit] = False
             removed += int(hit.sum())
+        self._cut_version = getattr(self, "_cut_version", 0) + 1     # forces changed: re-evaluate
         return removed
