@@ -16,6 +16,9 @@ class VertexLoads:
         if not parts:
             self.ids, self.forces = np.zeros(0, np.int64), np.zeros((0, 3))
             return
+        if len(parts) == 1 and np.all(np.diff(parts[0][0]) > 0):     # one handle: already unique, sorted
+            self.ids, self.forces = parts[0]
+            return
         ids = np.concatenate([i for i, _ in parts])
         f = np.concatenate([f for _, f in parts])
         self.ids, inv = np.unique(ids, return_inverse=True)

@@ -36,3 +36,20 @@ def test_wrench_spread_reproduces_force_and_torque():
     c = (m[:, None] * x).sum(0) / m.sum()
     np.testing.assert_allclose(f.sum(0), force, atol=1e-12)
     np.testing.assert_allclose(np.cross(x - c, f).sum(0), torque, atol=1e-12)
+
+
+def test_vertex_loads_sum_repeated_ids_and_match_the_dense_array():
+    from mdss_ros.loads import VertexLoads, sparse_loads
+    a = (np.array([3, 7]), np.array([[1.0, 0, 0], [0, 2.0, 0]]))
+    b = (np.array([7, 1]), np.array([[0, 1.0, 0], [0, 0, 5.0]]))
+    loads = VertexLoads(10, [a, b])
+    assert loads.ids.tolist() == [1, 3, 7]
+    np.testing.assert_array_equal(loads.forces, [[0, 0, 5.0], [1.0, 0, 0], [0, 3.0, 0]])
+    dense = loads.dense()
+    assert dense.shape == (10, 3) and dense.sum() == 11.0
+    ids, f = sparse_loads(dense)
+    np.testing.assert_array_equal(ids, loads.ids)
+    np.testing.assert_array_equal(f, loads.forces)
+    single = VertexLoads(10, [a])
+    np.testing.assert_array_equal(single.dense()[[3, 7]], a[1])
+    assert VertexLoads(10).dense().sum() == 0.0
