@@ -46,6 +46,7 @@ Per step the guard reports (merged into Simulator.stats()):
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from .errors import MdssError
 from .loads import sparse_loads
@@ -96,11 +97,23 @@ class Measure:
 
 def inverted_tets(x, tets):
     """Number of tets with det(Ds) <= 0 at positions x (n_verts, 3); tets (n_tets, 4) are
-    positively oriented at rest, so this counts inverted (or flat) elements."""
-    p = x[tets]                                       # (n_tets, 4, 3)
-    e1, e2, e3 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    det = np.einsum("ij,ij->i", np.cross(e1, e2), e3)
-    return int(np.count_nonzero(~(det > 0.0)))
+    positively oriented at rest, so this counts inverted (or flat) elements (NaN counts)."""
+    return int(_count_inverted(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(tets, dtype=np.int64)))
+
+
+@njit(cache=True)
+def _count_inverted(x, tets):
+    # One pass with no temporaries: this runs after every step of a guarded simulation.
+    n = 0
+    for e in range(tets.shape[0]):
+        a, b, c, d = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+        e3x, e3y, e3z = x[d, 0] - x[a, 0], x[d, 1] - x[a, 1], x[d, 2] - x[a, 2]
+        det = (e1y * e2z - e1z * e2y) * e3x + (e1z * e2x - e1x * e2z) * e3y + (e1x * e2y - e1y * e2x) * e3z
+        if not det > 0.0:
+            n += 1
+    return n
 
 
 def measure(model, tets, gravity, check_inversion=True):

@@ -333,6 +333,7 @@ class ReducedModel:
         self.J_full = self.is_full_vertex[iv]
         self.J_icol = np.full((n_I, 3), -1, dtype=np.int64)
         self.iface_groups = []         # per subspace domain: (rows in iface, local vertex ids)
+        self._iface_basis = None       # their basis rows, gathered on first use (_interface_J)
         for k, dom in enumerate(self.subspace):
             rows = np.flatnonzero(self.vertex_domain[iv] == dom.index)
             self.iface_groups.append((rows, self.vertex_local[iv[rows]]))
@@ -634,13 +635,20 @@ class ReducedModel:
         """J values (n_I, 3, s_max) and world positions (n_I, 3) of the interface vertices."""
         J = self.J_static.copy()
         x = np.empty((len(self.iface), 3))
+        if getattr(self, "_iface_basis", None) is None:
+            # Contiguous basis rows of each domain's interface vertices: positions are then
+            # one matvec and R U one GEMM per domain instead of gathers and einsums.
+            self._iface_basis = [(np.ascontiguousarray(self.subspace[k].U3[loc]),
+                                  self.subspace[k].r_local[loc]) for k, (_, loc) in enumerate(self.iface_groups)]
         for k, (rows, loc) in enumerate(self.iface_groups):
             if rows.size == 0:
                 continue
             dom = self.subspace[k]
             R = frames.R[k]
-            x[rows] = self._domain_world(k, loc, q, frames)
-            J[rows, :, :dom.r] = np.einsum("ij,ljb->lib", R, dom.U3[loc])
+            U_loc, r_loc = self._iface_basis[k]                      # (m, 3, r), (m, 3)
+            p = r_loc + (U_loc.reshape(-1, dom.r) @ q[k]).reshape(-1, 3)
+            x[rows] = frames.c[k] + p @ R.T
+            J[rows, :, :dom.r] = np.tensordot(U_loc, R, axes=([1], [1])).transpose(0, 2, 1)
             if dom.movable:
                 J[rows, :, dom.r:dom.r + 3] = np.eye(3)
                 J[rows, :, dom.r + 3:dom.r + 6] = -skew_batch(x[rows] - frames.c[k])
