@@ -305,3 +305,25 @@ def test_static_press_from_rest_converges_to_the_tolerance(kind):
     assert st["newton_iterations"] <= 4, st
     if kind == "full":
         assert 0.0 < st["residual"] <= 1e-6
+
+
+def test_sphere_resting_on_a_floor_supported_block_floor_carries_the_weight():
+    """A kinematic sphere brought to rest on the top of a block that stands on a floor, under
+    gravity: the sphere touches (20 um into the settled top), the block is in equilibrium
+    between floor and sphere, the floor's reaction equals the block's weight to 1 %, and
+    nothing penetrates either collider."""
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"},
+                                  "ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.3]}}))
+    weight = sim.model.vertex_mass.sum() * 9.81
+    sim.step(150)                                            # the block settles on the floor
+    x = sim.vertex_positions()
+    centre = np.argmin(np.linalg.norm(sim.rest_positions() - (0.0, 0.0, 0.1), axis=1))
+    sim.set_collider_pose("ball", (0.0, 0.0, x[centre, 2] + 0.04 - 2e-5))
+    sim.step(100)
+    floor, ball = sim.collider_wrench("floor"), sim.collider_wrench("ball")
+    assert ball[2] > 0.0 and len(sim.contacts()) > 0            # the sphere does touch the block
+    assert abs(-floor[2] - weight - ball[2]) < 1e-6 * weight    # at rest: floor = weight + sphere load
+    assert abs(-floor[2] - weight) < 0.01 * weight
+    x = sim.vertex_positions()
+    for name in ("floor", "ball"):
+        assert sim.colliders[name].signed_distance(x)[0].min() > -1e-6
