@@ -669,39 +669,18 @@ class MdssNode(Node):
                           f"the simulation goes on")
 
     def _run_metadata(self):
-        """The `mdss_run` metadata `mdss run --mcap` writes (replay.RunRecording._metadata)."""
+        """The `mdss_run` metadata `mdss run --mcap` writes, plus what the node adds."""
         import json
-        import platform
-        from pathlib import Path
-        from . import __version__
-        scene = self.sim.scene
+        from .record.replay import run_metadata
         rates = {"points": self._p("points_publish_rate"), "mesh": self._p("mesh_publish_rate"),
                  "marker": self._p("marker_publish_rate"), "pose": self._p("pose_publish_rate"),
                  "diagnostics": self._p("diagnostics_rate")}
-        return {
-            "format": "mdss_run/1",
-            "recorder": "mdss_ros.node",
-            "scene_name": scene.name,
-            "scene_source": str(scene.source),
-            "scene_base_dir": str(Path(scene.base_dir).resolve()),
-            "scene_json": json.dumps(scene.data, sort_keys=True),
-            "namespace": self._topics.namespace,
-            "world_frame": self._p("world_frame"),
-            "rates_json": json.dumps(rates),
-            "diagnostics_clock": "wall time (the node's /diagnostics)",
-            "wrench_timeout_s": repr(self._p("wrench_timeout_s")),
-            "limits_json": json.dumps(self._limits.__dict__),
-            "dt": repr(float(self.sim.dt)),
-            "real_time_factor": repr(self._p("real_time_factor")),
-            "mdss_ros_version": __version__,
-            "numpy_version": np.__version__,
-            "python": sys.version.split()[0],
-            "platform": platform.platform(),
-            "machine": platform.machine(),
-            "cache_events_json": "[]",
-            "log_time": "sim time (ns) since the start, counting on across resets",
-            "publish_time": "wall clock (ns since the epoch) when the message was produced",
-        }
+        return run_metadata(self.sim, self._topics.namespace, self._p("world_frame"), rates,
+                            recorder="mdss_ros.node",
+                            diagnostics_clock="wall time (the node's /diagnostics)",
+                            wrench_timeout_s=repr(self._p("wrench_timeout_s")),
+                            limits_json=json.dumps(self._limits.__dict__),
+                            real_time_factor=repr(self._p("real_time_factor")))
 
     def _log_time(self):
         return int(round((self._log_offset + self.sim.time) * 1e9))

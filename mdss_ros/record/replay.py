@@ -84,6 +84,36 @@ def build_simulator(scene, overrides=None, base_dir=None):
     return sim, [list(e) for e in cache.events]
 
 
+def run_metadata(sim, namespace, world_frame, rates, cache_events=(), **extra):
+    """The `mdss_run` metadata of a recording (`mdss run --mcap` and the node): everything
+    replay needs to rebuild the run. rates: dict of OutputRates fields; extra: recorder-
+    specific string entries (the node's recorder, wrench timeout, limits)."""
+    from .. import __version__
+    scene = sim.scene
+    meta = {
+        "format": "mdss_run/1",
+        "scene_name": scene.name,
+        "scene_source": str(scene.source),
+        "scene_base_dir": str(Path(scene.base_dir).resolve()),
+        "scene_json": json.dumps(scene.data, sort_keys=True),
+        "namespace": namespace,
+        "world_frame": world_frame,
+        "rates_json": json.dumps(dict(rates)),
+        "dt": repr(float(sim.dt)),
+        "mdss_ros_version": __version__,
+        "numpy_version": np.__version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "cache_events_json": json.dumps([[s, k, Path(p).name if k in ("hit", "saved", "miss") else p]
+                                         for s, k, p in cache_events]),
+        "log_time": "sim time (ns) since the start, counting on across resets",
+        "publish_time": "wall clock (ns since the epoch) when the message was produced",
+    }
+    meta.update(extra)
+    return meta
+
+
 class Driver:
     """Steps inputs in and outputs out around Simulator.step(); shared by run and replay.
 
@@ -266,28 +296,7 @@ class RunRecording:
         return sim
 
     def _metadata(self, sim):
-        from .. import __version__
-        scene = sim.scene
-        return {
-            "format": "mdss_run/1",
-            "scene_name": scene.name,
-            "scene_source": str(scene.source),
-            "scene_base_dir": str(Path(scene.base_dir).resolve()),
-            "scene_json": json.dumps(scene.data, sort_keys=True),
-            "namespace": self.topics.namespace,
-            "world_frame": self.world_frame,
-            "rates_json": json.dumps(self.rates.__dict__),
-            "dt": repr(float(sim.dt)),
-            "mdss_ros_version": __version__,
-            "numpy_version": np.__version__,
-            "python": sys.version.split()[0],
-            "platform": platform.platform(),
-            "machine": platform.machine(),
-            "cache_events_json": json.dumps([[s, k, Path(p).name if k in ("hit", "saved", "miss") else p]
-                                             for s, k, p in self.cache_events]),
-            "log_time": "sim time (ns)",
-            "publish_time": "wall clock (ns since the epoch) when the message was produced",
-        }
+        return run_metadata(sim, self.topics.namespace, self.world_frame, self.rates.__dict__, self.cache_events)
 
     def start(self, sim):
         from .rerun_logger import RerunLogger
