@@ -60,6 +60,10 @@ def _posint(value, where):
     return value
 
 
+def _posint_or_null(value, where):
+    return None if value is None else _posint(value, where)
+
+
 def _choice(*options):
     def check(value, where):
         if value not in options:
@@ -108,6 +112,8 @@ SCHEMA = {
             "fictitious": (_choice("explicit", "implicit"), "explicit"),
         },
         "solver": (_choice("auto", "pardiso", "cholmod", "splu"), "auto"),
+        # BLAS threads while stepping (mdss_ros/threads.py); null = the library's default.
+        "blas_threads": (_posint_or_null, 1),
         "full_space_domains": (list, []),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),

@@ -13,6 +13,7 @@ from .errors import SceneError
 from .guard import GuardSettings, StabilityGuard
 from .loads import VertexLoads, closest_surface_point, wrench_to_vertex_forces
 from .scene import Scene, load_scene
+from .threads import BlasThreads
 
 
 def build_model(scene, body, progress=None, cache=None):
@@ -57,6 +58,7 @@ class Simulator:
         if hasattr(self.model, "watch"):
             self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
         self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
+        self._blas_threads = BlasThreads(scene["model"]["blas_threads"])
         self.reset()
 
     # ----------------------------------------------------------------- state
@@ -154,23 +156,28 @@ class Simulator:
         """Advance n steps of dt. Every step goes through the stability guard (mdss_ros.guard):
         a diverging step is rolled back and retried; if nothing helps the last good state is
         kept and stats()["stability"] says "failed". Time advances either way."""
-        for _ in range(int(n)):
-            t0 = time.perf_counter()
-            f_app = self.applied_loads()
-            t1 = time.perf_counter()
-            # Collider poses set for the end of this step; guard sub-steps interpolate towards them.
-            self._collider_targets = {name: (c.position.copy(), c.orientation.copy())
-                                      for name, c in self.colliders.items()}
-            self._collider_step_start = dict(self._collider_start)
-            model_stats, report = self.guard.step(lambda k, n_sub: self._advance(f_app, k, n_sub),
-                                                  self._save, self._restore, f_app, self.gravity,
-                                                  self.step_count)
-            t2 = time.perf_counter()
-            self.time = (self.step_count + 1) * self.dt
-            self.step_count += 1
-            # A zero-duration force lasts exactly the step it was applied in.
-            self._point_forces = [p for p in self._point_forces if p[3] is None or p[3] > self.time + 1e-12]
-            self._stats = dict(model_stats, **report, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
+        with self._blas_threads():
+            for _ in range(int(n)):
+                self._step_once()
+
+    def _step_once(self):
+        """One step of dt through the guard (see step)."""
+        t0 = time.perf_counter()
+        f_app = self.applied_loads()
+        t1 = time.perf_counter()
+        # Collider poses set for the end of this step; guard sub-steps interpolate towards them.
+        self._collider_targets = {name: (c.position.copy(), c.orientation.copy())
+                                  for name, c in self.colliders.items()}
+        self._collider_step_start = dict(self._collider_start)
+        model_stats, report = self.guard.step(lambda k, n_sub: self._advance(f_app, k, n_sub),
+                                              self._save, self._restore, f_app, self.gravity,
+                                              self.step_count)
+        t2 = time.perf_counter()
+        self.time = (self.step_count + 1) * self.dt
+        self.step_count += 1
+        # A zero-duration force lasts exactly the step it was applied in.
+        self._point_forces = [p for p in self._point_forces if p[3] is None or p[3] > self.time + 1e-12]
+        self._stats = dict(model_stats, **report, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
 
     def _advance(self, f_app, k, n_sub):
         """Sub-step k (1..n_sub) of a step; the model's dt is already dt / n_sub. Colliders
@@ -202,7 +209,8 @@ class Simulator:
         return self.body.surface.triangles
 
     def surface_positions(self):
-        return self.model.positions_of(self.body.surface.vertex_ids)
+        with self._blas_threads():           # per frame, like a step (threads.py)
+            return self.model.positions_of(self.body.surface.vertex_ids)
 
     def surface_vertex_ids(self):
         return self.body.surface.vertex_ids

@@ -92,3 +92,22 @@ def test_reduced_cantilever_scene_api():
     np.testing.assert_allclose(sim.vertex_positions()[pins], sim.rest_positions()[pins], atol=1e-12)
     assert np.allclose(sim.external_forces() - sim.applied_forces(),
                        sim.model.vertex_mass[:, None] * sim.gravity)
+
+
+def test_steps_run_with_the_scene_blas_threads_and_restore_them():
+    """model.blas_threads limits BLAS inside a step (threads.py) and nowhere else."""
+    from threadpoolctl import threadpool_info
+    from mdss_ros.errors import SceneError
+    from mdss_ros.threads import BlasThreads
+
+    def blas_threads():
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    before = blas_threads()
+    with BlasThreads(1)():
+        assert blas_threads() and all(n == 1 for n in blas_threads())
+    assert blas_threads() == before
+    with BlasThreads(None)():
+        assert blas_threads() == before
+    with pytest.raises(SceneError, match="blas_threads"):
+        load_scene("cantilever", {"model.blas_threads": 0})
+    assert load_scene("cantilever", {"model.blas_threads": None})["model"]["blas_threads"] is None

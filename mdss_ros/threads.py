@@ -1,0 +1,34 @@
+"""BLAS threads while stepping.
+
+A step multiplies many small matrices (cubature and coupling GEMMs of a few hundred rows
+by tens of columns). Multithreaded OpenBLAS gains little there on an idle machine and
+loses badly on a shared one: its worker threads spin and wait for cores that other
+processes (the rest of a co-simulation) hold. armadillo_class at load average 5.7 on 2
+cores, step median: 287-299 ms with 2 BLAS threads, 19-32 ms with 1 (same run, see the
+session note). So the Simulator steps with `model.blas_threads` BLAS threads (default 1)
+and leaves the library's setting alone everywhere else (precompute keeps its threads).
+numba's own thread pool is not affected.
+"""
+import contextlib
+
+
+class BlasThreads:
+    """Context manager factory: `with BlasThreads(1)(): ...` limits every BLAS library
+    loaded in the process to n threads inside the block. n = None leaves them alone.
+    The library list is read on first use (after numpy/scipy are loaded)."""
+
+    def __init__(self, n):
+        self.n = n
+        self._controller = None
+
+    def __call__(self):
+        if self.n is None:
+            return contextlib.nullcontext()
+        if self._controller is None:
+            try:
+                from threadpoolctl import ThreadpoolController
+            except ImportError:          # optional at run time: stepping still works
+                self.n = None
+                return contextlib.nullcontext()
+            self._controller = ThreadpoolController()
+        return self._controller.limit(limits=self.n, user_api="blas")
