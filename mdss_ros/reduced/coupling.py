@@ -33,6 +33,50 @@ def skew_batch(p):
                      np.stack([-p[:, 1], p[:, 0], z], 1)], 1)
 
 
+@njit(cache=True, parallel=True)
+def interface_jacobian(U, r_local, row_dom, r, movable, q, R, c, J, x):
+    """J_l and world position of every subspace interface vertex (rows with row_dom < 0,
+    full-space vertices, are left to the caller).
+
+    U (n_I, 3, r_max) basis rows, r_local (n_I, 3) rest offsets about the frame origin,
+    row_dom (n_I,) subspace domain of each row; per domain r (D,), movable (D,) bool,
+    q (D, r_max) modal coordinates, R (D, 3, 3), c (D, 3). J (n_I, 3, s_max) and
+    x (n_I, 3) are written: x_l = c + R (r_l + U_l q), J_l = [R U_l, I3, -[x_l - c]x, 0...].
+    """
+    n_I, _, s_max = J.shape
+    for la in prange(n_I):
+        k = row_dom[la]
+        if k < 0:
+            continue
+        rk = r[k]
+        p0 = r_local[la, 0]
+        p1 = r_local[la, 1]
+        p2 = r_local[la, 2]
+        for t in range(rk):
+            qt = q[k, t]
+            p0 += U[la, 0, t] * qt
+            p1 += U[la, 1, t] * qt
+            p2 += U[la, 2, t] * qt
+        d = np.empty(3)
+        for i in range(3):
+            d[i] = R[k, i, 0] * p0 + R[k, i, 1] * p1 + R[k, i, 2] * p2
+            x[la, i] = c[k, i] + d[i]
+            for t in range(rk):
+                J[la, i, t] = R[k, i, 0] * U[la, 0, t] + R[k, i, 1] * U[la, 1, t] + R[k, i, 2] * U[la, 2, t]
+            for t in range(rk, s_max):
+                J[la, i, t] = 0.0
+        if movable[k]:
+            for i in range(3):
+                J[la, i, rk + i] = 1.0
+            # -[d]x: rows (0, d2, -d1), (-d2, 0, d0), (d1, -d0, 0)
+            J[la, 0, rk + 4] = d[2]
+            J[la, 0, rk + 5] = -d[1]
+            J[la, 1, rk + 3] = -d[2]
+            J[la, 1, rk + 5] = d[0]
+            J[la, 2, rk + 3] = d[1]
+            J[la, 2, rk + 4] = -d[0]
+
+
 @njit(cache=True, inline="always")
 def _k_times_j(K_e, e, a, b, J, cols, lb, T):
     """T (3, s_max) = K_e[e] block (a, b) times J of vertex lb (padding columns zero)."""
@@ -160,31 +204,6 @@ def project_coupling_left(elem, f_e, K_e, JL, J, cols, G, A_ss):
                             A_ss[row, col] += JL[e, a, 0, s] * T[0, t] + JL[e, a, 1, s] * T[1, t] + JL[e, a, 2, s] * T[2, t]
 
 
-def vertex_pair_slots(elem, vertex_sub, max_slots=None):
-    """Static data of the two-phase projection (subspace-only systems).
-
-    elem (n_c, k) interface-vertex ids; vertex_sub (n_I,) subspace domain of each.
-    Returns (slot_dom (n_I, D) domains each vertex couples to, -1 padded;
-             pair_slot (n_c, k, k) slot of b's domain in a's list).
-    """
-    n_c, k = elem.shape
-    n_I = len(vertex_sub)
-    if n_c == 0:
-        return np.full((n_I, 1), -1, dtype=np.int64), np.zeros((0, k, k), dtype=np.int64)
-    a_ids = np.repeat(elem, k, axis=1).ravel()                 # (n_c*k*k,) vertex a of each pair
-    b_dom = vertex_sub[np.tile(elem, (1, k)).ravel()]          # domain of b
-    key = np.unique(a_ids * (vertex_sub.max() + 1) + b_dom)
-    va, dom = key // (vertex_sub.max() + 1), key % (vertex_sub.max() + 1)
-    counts = np.bincount(va, minlength=n_I)
-    D = int(counts.max()) if max_slots is None else max_slots
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rank = np.arange(len(va)) - start[va]
-    slot_dom = np.full((n_I, D), -1, dtype=np.int64)
-    slot_dom[va, rank] = dom
-    pair_slot = np.searchsorted(key, a_ids * (vertex_sub.max() + 1) + b_dom) - start[a_ids]
-    return slot_dom, pair_slot.reshape(n_c, k, k).astype(np.int64)
-
-
 def vertex_incidence(elem, n_I):
     """CSR lists of the (element, slot) pairs at each interface vertex: (ptr (n_I+1,), inc (n, 2))."""
     flat = elem.ravel()
@@ -194,58 +213,125 @@ def vertex_incidence(elem, n_I):
     return ptr, inc
 
 
+def coupling_entries(elem, vertex_sub):
+    """Static data of the two-phase projection: one entry per (vertex a, domain l) pair that
+    an element couples, ordered by (domain of a, l, a) so that each domain pair's entries
+    are one contiguous block.
+
+    elem (n_c, k) interface-vertex ids; vertex_sub (n_I,) subspace domain of each.
+    Returns (entry_vertex (n_e,), entry_dom (n_e,), pair_entry (n_c, k, k): the entry of
+    (a, domain of b) for every vertex pair of every element, vertex_entries (n_I, D): the
+    entries of each vertex, -1 padded).
+    """
+    n_c, k = elem.shape
+    n_I = len(vertex_sub)
+    if n_c == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, np.zeros((0, k, k), dtype=np.int64), np.full((n_I, 1), -1, dtype=np.int64)
+    nd = int(vertex_sub.max()) + 1
+    a_ids = np.repeat(elem, k, axis=1).ravel()                 # (n_c k k,) vertex a of each pair
+    b_dom = vertex_sub[np.tile(elem, (1, k)).ravel()]          # domain of b
+    pair_key = (vertex_sub[a_ids] * nd + b_dom) * n_I + a_ids
+    keys, pair_entry = np.unique(pair_key, return_inverse=True)
+    entry_vertex, entry_dom = keys % n_I, (keys // n_I) % nd
+    counts = np.bincount(entry_vertex, minlength=n_I)
+    by_vertex = np.argsort(entry_vertex, kind="stable")
+    rank = np.arange(len(keys)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[entry_vertex[by_vertex]]
+    vertex_entries = np.full((n_I, max(int(counts.max()), 1)), -1, dtype=np.int64)
+    vertex_entries[entry_vertex[by_vertex], rank] = by_vertex
+    return (entry_vertex.astype(np.int64), entry_dom.astype(np.int64),
+            pair_entry.reshape(n_c, k, k).astype(np.int64), vertex_entries)
+
+
 @njit(cache=True, parallel=True)
-def accumulate_KJ(elem, K_e, J, pair_slot, ptr, inc, KJ):
-    """Phase 1: KJ[a, slot] += K_e[a, b] J_b for every vertex pair of every element,
-    parallel over interface vertices a (each writes only its own rows).
-    KJ (n_I, D, 3, s_max) must be zeroed by the caller."""
+def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ, f_sum):
+    """Phase 1, parallel over interface vertices a (each writes only its own rows):
+    KJ[entry (a, l)] = sum of w_e K_e[a, b] J_b over the elements at a and their vertices b
+    in domain l; f_sum[a] = sum of w_e f_e[a] over the elements at a.
+    w (n_c,) element weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max);
+    KJ (n_e, 3, s_max), f_sum (n_I, 3) are overwritten."""
     n_I = ptr.shape[0] - 1
     k = elem.shape[1]
     s_max = J.shape[2]
     for la in prange(n_I):
+        for d in range(vertex_entries.shape[1]):
+            en = vertex_entries[la, d]
+            if en >= 0:
+                KJ[en] = 0.0
+        f0 = 0.0
+        f1 = 0.0
+        f2 = 0.0
         for m in range(ptr[la], ptr[la + 1]):
             e = inc[m, 0]
             a = inc[m, 1]
+            we = w[e]
+            f0 += we * f_e[e, a, 0]
+            f1 += we * f_e[e, a, 1]
+            f2 += we * f_e[e, a, 2]
             for b in range(k):
                 lb = elem[e, b]
-                sl = pair_slot[e, a, b]
+                en = pair_entry[e, a, b]
                 for i in range(3):
-                    k0 = K_e[e, 3 * a + i, 3 * b]
-                    k1 = K_e[e, 3 * a + i, 3 * b + 1]
-                    k2 = K_e[e, 3 * a + i, 3 * b + 2]
+                    k0 = we * K_e[e, 3 * a + i, 3 * b]
+                    k1 = we * K_e[e, 3 * a + i, 3 * b + 1]
+                    k2 = we * K_e[e, 3 * a + i, 3 * b + 2]
                     for t in range(s_max):
-                        KJ[la, sl, i, t] += k0 * J[lb, 0, t] + k1 * J[lb, 1, t] + k2 * J[lb, 2, t]
+                        KJ[en, i, t] += k0 * J[lb, 0, t] + k1 * J[lb, 1, t] + k2 * J[lb, 2, t]
+        f_sum[la, 0] = f0
+        f_sum[la, 1] = f1
+        f_sum[la, 2] = f2
 
 
 class TwoPhaseProjection:
-    """J^T K J of coupling elements as per-vertex K J sums, then one GEMM per domain pair:
-    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}. About a third of the flops of the
-    per-element-pair product, and the O(n_I s^2) part runs in BLAS."""
+    """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
+    phases: per-vertex K J and force sums (accumulate_KJ), then one GEMM per domain pair,
+    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, and one GEMV per domain for G. About a
+    third of the flops of the per-element-pair product, and the O(n_I s^2) part runs in
+    BLAS on contiguous blocks: entries are stored grouped by domain pair, and when the
+    interface vertices are ordered by domain, a domain's J rows are one slice too."""
 
     def __init__(self, elem, vertex_sub, sizes, offsets):
         self.elem = elem
-        self.slot_dom, self.pair_slot = vertex_pair_slots(elem, vertex_sub)
+        self.entry_vertex, entry_dom, self.pair_entry, self.vertex_entries = coupling_entries(elem, vertex_sub)
         self.ptr, self.inc = vertex_incidence(elem, len(vertex_sub))
         self.sizes, self.offsets = sizes, offsets
-        self.groups = []                       # (k, l, vertex ids, slot ids)
-        n_I, D = self.slot_dom.shape
-        va = np.repeat(np.arange(n_I), D)
-        sl = np.tile(np.arange(D), n_I)
-        dom_l = self.slot_dom.ravel()
-        ok = dom_l >= 0
-        va, sl, dom_l = va[ok], sl[ok], dom_l[ok]
-        dom_k = vertex_sub[va]
-        for k, l in np.unique(np.stack([dom_k, dom_l], 1), axis=0):
-            sel = (dom_k == k) & (dom_l == l)
-            self.groups.append((int(k), int(l), va[sel], sl[sel]))
+        self.domain_rows = []                  # per domain: its interface vertices (slice if contiguous)
+        for k in range(len(sizes)):
+            rows = np.flatnonzero(vertex_sub == k)
+            self.domain_rows.append(as_slice(rows))
+        self.groups = []                       # (k, l, first entry, end entry, J rows of the entries)
+        group_key = vertex_sub[self.entry_vertex] * len(sizes) + entry_dom
+        bounds = np.flatnonzero(np.diff(group_key)) + 1
+        for e0, e1 in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(group_key)]])):
+            if e1 <= e0:
+                continue
+            k, l = divmod(int(group_key[e0]), len(sizes))
+            self.groups.append((k, l, int(e0), int(e1), as_slice(self.entry_vertex[e0:e1])))
+        self._KJ = None
 
-    def add(self, K_e, J, A_ss):
-        n_I, D = self.slot_dom.shape
-        KJ = np.zeros((n_I, D, 3, J.shape[2]))
-        accumulate_KJ(self.elem, K_e, J, self.pair_slot, self.ptr, self.inc, KJ)
-        for k, l, va, sl in self.groups:
-            sk, sl_ = self.sizes[k], self.sizes[l]
-            Jk = J[va, :, :sk].reshape(-1, sk)
-            KJk = KJ[va, sl, :, :sl_].reshape(-1, sl_)
+    def add(self, f_e, K_e, J, G, A_ss, weights=None):
+        """f_e (n_c, k, 3), K_e (n_c, 3k, 3k) world-frame element forces and stiffness,
+        J (n_I, 3, s_max), weights (n_c,) or None (all 1); G (S,) and A_ss (S, S) are
+        added to."""
+        s_max = J.shape[2]
+        if weights is None:
+            weights = np.ones(len(self.elem))
+        if self._KJ is None or self._KJ.shape[2] != s_max:
+            self._KJ = np.empty((len(self.entry_vertex), 3, s_max))
+            self._f_sum = np.empty((len(self.ptr) - 1, 3))
+        KJ, f_sum = self._KJ, self._f_sum
+        accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
+        for k, rows in enumerate(self.domain_rows):
+            sk, ok = self.sizes[k], self.offsets[k]
+            G[ok:ok + sk] += J[rows, :, :sk].reshape(-1, sk).T @ f_sum[rows].ravel()
+        for k, l, e0, e1, rows in self.groups:
+            sk, sl = self.sizes[k], self.sizes[l]
             ok, ol = self.offsets[k], self.offsets[l]
-            A_ss[ok:ok + sk, ol:ol + sl_] += Jk.T @ KJk
+            A_ss[ok:ok + sk, ol:ol + sl] += J[rows, :, :sk].reshape(-1, sk).T @ KJ[e0:e1, :, :sl].reshape(-1, sl)
+
+
+def as_slice(ids):
+    """A slice when ids (sorted) are one contiguous range (a view instead of a gather), else ids."""
+    if len(ids) and ids[-1] - ids[0] + 1 == len(ids):
+        return slice(int(ids[0]), int(ids[-1]) + 1)
+    return ids

@@ -34,8 +34,8 @@ from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
 from ..rotations import exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
-from .coupling import (TwoPhaseProjection, project_coupling, project_coupling_left, project_forces, skew_batch,
-                       spring_forces)
+from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling, project_coupling_left,
+                       project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, _orthonormalise, fictitious_forces
 
@@ -320,8 +320,16 @@ class ReducedModel:
             self.c_tets = np.asarray(tet_ids, dtype=np.int64)
             self.c_verts = self.body.tets[self.c_tets]
             self.c_geom = _subset_geometry(self.geom, self.c_tets)
-        self.iface, inv = np.unique(self.c_verts, return_inverse=True)
-        self.c_elem = inv.reshape(self.c_verts.shape).astype(np.int64)
+        iface, inv = np.unique(self.c_verts, return_inverse=True)
+        # Ordered by domain (full-space vertices last), so that a domain's interface rows
+        # are one slice: J, its basis rows and the coupling GEMMs then work on views.
+        dom = np.where(self.is_full_vertex[iface], len(self.subspace),
+                       self.sub_index_of_domain[self.vertex_domain[iface]])
+        order = np.lexsort((iface, dom))
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        self.iface = iface[order]
+        self.c_elem = rank[inv].reshape(self.c_verts.shape).astype(np.int64)
         self._build_interface_maps()
 
     def _build_interface_maps(self):
@@ -633,26 +641,29 @@ class ReducedModel:
     # ------------------------------------------------------------------ forces
     def _interface_J(self, q, frames):
         """J values (n_I, 3, s_max) and world positions (n_I, 3) of the interface vertices."""
-        J = self.J_static.copy()
-        x = np.empty((len(self.iface), 3))
         if getattr(self, "_iface_basis", None) is None:
-            # Contiguous basis rows of each domain's interface vertices: positions are then
-            # one matvec and R U one GEMM per domain instead of gathers and einsums.
-            self._iface_basis = [(np.ascontiguousarray(self.subspace[k].U3[loc]),
-                                  self.subspace[k].r_local[loc]) for k, (_, loc) in enumerate(self.iface_groups)]
-        for k, (rows, loc) in enumerate(self.iface_groups):
-            if rows.size == 0:
-                continue
-            dom = self.subspace[k]
-            R = frames.R[k]
-            U_loc, r_loc = self._iface_basis[k]                      # (m, 3, r), (m, 3)
-            p = r_loc + (U_loc.reshape(-1, dom.r) @ q[k]).reshape(-1, 3)
-            x[rows] = frames.c[k] + p @ R.T
-            J[rows, :, :dom.r] = np.tensordot(U_loc, R, axes=([1], [1])).transpose(0, 2, 1)
-            if dom.movable:
-                J[rows, :, dom.r:dom.r + 3] = np.eye(3)
-                J[rows, :, dom.r + 3:dom.r + 6] = -skew_batch(x[rows] - frames.c[k])
+            # Basis rows and rest offsets of every interface vertex, gathered once.
+            n_I, r_max = len(self.iface), max([dom.r for dom in self.subspace] + [1])
+            U = np.zeros((n_I, 3, r_max))
+            r_loc = np.zeros((n_I, 3))
+            row_dom = np.full(n_I, -1, dtype=np.int64)
+            for k, (rows, loc) in enumerate(self.iface_groups):
+                dom = self.subspace[k]
+                U[rows, :, :dom.r] = dom.U3[loc]
+                r_loc[rows] = dom.r_local[loc]
+                row_dom[rows] = k
+            self._iface_basis = (U, r_loc, row_dom, np.array([dom.r for dom in self.subspace], dtype=np.int64),
+                                 np.array([dom.movable for dom in self.subspace], dtype=np.bool_), r_max)
+        U, r_loc, row_dom, r, movable, r_max = self._iface_basis
+        q_pad = np.zeros((len(self.subspace), r_max))
+        for k, qk in enumerate(q):
+            q_pad[k, :len(qk)] = qk
+        J = np.empty((len(self.iface), 3, self.s_max))
+        x = np.empty((len(self.iface), 3))
+        interface_jacobian(U, r_loc, row_dom, r, movable, q_pad, np.ascontiguousarray(frames.R),
+                           np.ascontiguousarray(frames.c), J, x)
         full_rows = np.flatnonzero(self.J_full)
+        J[full_rows] = self.J_static[full_rows]
         x[full_rows] = self.x_full_state[self.iface[full_rows]]
         return J, x
 
@@ -694,11 +705,15 @@ class ReducedModel:
         else:
             e_c, f_c, K_c = spring_forces(x_I, self.c_elem, self.spring_rest, self.spring_k, want_hessian)
         JL = None
+        two_phase = want_hessian and self.F == 0 and not self.unsymmetric
+        w_c = None
         if self.c_weights is not None:
             w = self.c_weights
             e_c = e_c * w[:, 2]
             if self.unsymmetric:
                 JL = self._weighted_left_J(J, x_I, frames)
+            elif two_phase:
+                w_c = w[:, 0]                   # applied inside the projection
             else:
                 f_c = f_c * w[:, 0, None, None]
                 if want_hessian:
@@ -707,9 +722,8 @@ class ReducedModel:
         if JL is not None:
             project_coupling_left(self.c_elem, f_c, K_c if want_hessian else np.zeros((len(f_c), 12, 12)),
                                   JL, J, self.J_cols, G, K_ss if want_hessian else np.zeros((self.S, self.S)))
-        elif want_hessian and self.F == 0:
-            project_forces(self.c_elem, f_c, J, self.J_cols, G)
-            self._two_phase().add(K_c, J, K_ss)
+        elif two_phase:
+            self._two_phase().add(f_c, K_c, J, G, K_ss, w_c)
         elif want_hessian:
             project_coupling(self.c_elem, f_c, K_c, J, self.J_cols, self.J_full, self.J_icol, G, K_ss, K_sI)
             if self.F:
