@@ -7,13 +7,15 @@ everything the stage depends on (and the key of the stage before it):
     cubature  bases key, training and cubature settings, dt, damping, coupling, code
 
 so changing the cubature settings reuses the bases, and changing the mesh rebuilds all.
-"code" is a hash of the source files of the precompute, so editing them invalidates
-old entries. A file is an .npz holding the arrays plus a JSON header (magic, stage, key,
+"code" is a hash of the source files of the precompute (their syntax tree without
+comments and docstrings), so editing their code invalidates old entries and editing a
+comment does not. A file is an .npz holding the arrays plus a JSON header (magic, stage, key,
 SHA-256 of the arrays); a file that fails to load, has another key or a wrong checksum is
 reported and rebuilt, never used.
 
 The folder is $MDSS_CACHE_DIR, else ~/.cache/mdss_ros.
 """
+import ast
 import hashlib
 import io
 import json
@@ -41,8 +43,20 @@ def code_hash(stage="bases"):
     for rel in STAGE_CODE[stage]:
         p = root / rel
         h.update(rel.encode())
-        h.update(p.read_bytes() if p.exists() else b"missing")
+        h.update(code_fingerprint(p.read_text()) if p.exists() else b"missing")
     return h.hexdigest()[:16]
+
+
+def code_fingerprint(source):
+    """The syntax tree of Python source without docstrings (comments are not in it), as
+    bytes: a comment or docstring edit keeps it, any code edit changes it."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                node.body = node.body[1:] or [ast.Pass()]
+    return ast.dump(tree, include_attributes=False).encode()
 
 
 def cache_key(*parts):

@@ -90,3 +90,14 @@ def test_region_order_is_part_of_the_bases_key():
                             "model": {"kind": "reduced", "domains": {"regions": regions}, "modes": 4}})
         keys.append(bases_cache_key(build_body(scene), model_config(scene)))
     assert keys[0] != keys[1]
+
+
+def test_code_fingerprint_ignores_comments_and_docstrings_not_code():
+    from mdss_ros.precompute import code_fingerprint
+    a = 'def f(x):\n    """Doc."""\n    return x + 1  # why\n'
+    b = '# header\ndef f(x):\n    """Other doc,\n    longer."""\n    # a note\n    return x + 1\n'
+    c = 'def f(x):\n    """Doc."""\n    return x + 2\n'
+    d = 'def f(x):\n    return "x + 1"\n'                   # a string that is code, not a docstring
+    assert code_fingerprint(a) == code_fingerprint(b)
+    assert code_fingerprint(a) != code_fingerprint(c)
+    assert code_fingerprint(a) != code_fingerprint(d)
