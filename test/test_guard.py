@@ -310,3 +310,26 @@ def test_reduced_guard_measure_matches_vertex_sums_on_a_spinning_deformed_body()
     assert got.gravity == pytest.approx(-(m.vertex_mass * (x @ sim.gravity)).sum(), rel=1e-10)
     assert got.speed >= np.sqrt((v * v).sum(1).max())
     assert got.finite and got.inverted == 0
+
+
+def test_reduced_guard_counts_inverted_samples_and_coupling_elements_like_the_vertices_do():
+    """_guard_inverted reads cubature samples from q and coupling elements from the start
+    evaluation; it must count what the vertex positions say, here on a crushed state."""
+    from mdss_ros import Simulator
+    from mdss_ros.guard import inverted_tets
+    sim = Simulator("cantilever", {"model.kind": "reduced", "model.domains": {"count": 2}, "model.modes": 6,
+                                   "model.cubature": {"samples": 40, "interface": "uniform", "interface_samples": 20,
+                                                      "training": {"n_poses": 12}},
+                                   "body.mesh.cell": 0.05, "model.guard.enabled": False})
+    m = sim.model
+    rng = np.random.default_rng(0)
+    counts = []
+    for scale in (0.0, 0.3, 3.0):
+        m.q = [scale * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace]
+        m._start_evaluation()                         # what the guard's energy check leaves behind
+        x = m.vertex_positions()
+        tets = [dom.vertices[dom.forces.tets[dom.sampled.elements]] for dom in m.subspace] + [m.body.tets[m.c_tets]]
+        expected = sum(inverted_tets(x, t) for t in tets)
+        assert m._guard_inverted() == expected
+        counts.append(expected)
+    assert counts[0] == 0 and counts[-1] > 0

@@ -330,6 +330,7 @@ class ReducedModel:
         rank[order] = np.arange(len(order))
         self.iface = iface[order]
         self.c_elem = rank[inv].reshape(self.c_verts.shape).astype(np.int64)
+        self._guard_tet_list = {}              # the guard's element lists follow the coupling set
         self._build_interface_maps()
 
     def _build_interface_maps(self):
@@ -1258,10 +1259,7 @@ class ReducedModel:
                 elastic = float(self.elastic_energy())
             except (ArithmeticError, ValueError, RuntimeError):
                 elastic = np.nan
-            inverted = 0
-            if check_inversion:
-                ids, local, plan = self._guard_tets()
-                inverted = inverted_tets(self._planned_positions(ids, plan), local)
+            inverted = self._guard_inverted() if check_inversion else 0
         finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 
@@ -1273,25 +1271,53 @@ class ReducedModel:
             self._guard_mass_r = [d.mass @ d.r_local for d in self.subspace]
         return self._guard_rs[k]
 
-    def _guard_tets(self):
+    def _guard_inverted(self):
+        """Inverted elements among those the forces evaluate, without rebuilding vertices
+        where it can: a cubature sample's F = I + unvec(G_s q) is at hand in reduced
+        coordinates, and the coupling elements' vertices are in the start evaluation of the
+        next step (which the guard's energy check has just made)."""
+        from ..guard import inverted_tets
+        n = 0
+        for k, dom in enumerate(self.subspace):
+            if getattr(dom, "sampled", None) is not None and len(dom.sampled.elements):
+                G = dom.sampled.G
+                F = (G.reshape(-1, G.shape[2]) @ self.q[k]).reshape(-1, 3, 3) + np.eye(3)
+                n += int(np.count_nonzero(~(np.linalg.det(F) > 0)))          # NaN counts
+        x_I = None
+        if self.coupling_kind == "element":
+            c = getattr(self, "_start_eval", None)
+            if c is not None and all(a is b for a, b in zip(c[0], (self.q, *self.q, self.frames, self.x_full))):
+                x_I = c[1][6]
+        ids, local, plan = self._guard_tets(coupling=x_I is None)
+        if len(ids):
+            n += inverted_tets(self._planned_positions(ids, plan), local)
+        if x_I is not None:
+            n += inverted_tets(x_I, self.c_elem)
+        return n
+
+    def _guard_tets(self, coupling=True):
         """(vertex ids (k,), tets (m, 4) into them, their output plan) the guard checks for
-        inversion: the elements the forces evaluate."""
-        if not hasattr(self, "_guard_tet_list"):
+        inversion from vertex positions: the elements the forces evaluate that are neither
+        cubature samples (_guard_inverted reads those from q) nor, unless `coupling`,
+        coupling elements."""
+        if getattr(self, "_guard_tet_list", {}).get(coupling) is None:
             parts = []
             for dom in self.subspace:
                 fm = dom.forces
                 if getattr(fm, "tets", None) is None or len(fm.tets) == 0:
                     continue
-                el = dom.sampled.elements if getattr(dom, "sampled", None) is not None else np.arange(len(fm.tets))
-                parts.append(dom.vertices[fm.tets[el]])
-            if self.coupling_kind == "element":
+                if getattr(dom, "sampled", None) is None:
+                    parts.append(dom.vertices[fm.tets])
+            if self.coupling_kind == "element" and coupling:
                 parts.append(self.body.tets[self.c_tets])
             if self.F:
                 parts.append(self.body.tets[self.ff_elements])
             tets = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
             ids, local = np.unique(tets, return_inverse=True)
-            self._guard_tet_list = (ids, local.reshape(tets.shape), self._output_plan(ids))
-        return self._guard_tet_list
+            if not hasattr(self, "_guard_tet_list"):
+                self._guard_tet_list = {}
+            self._guard_tet_list[coupling] = (ids, local.reshape(tets.shape), self._output_plan(ids))
+        return self._guard_tet_list[coupling]
 
     def domain_poses(self):
         out = np.zeros((len(self.domain_kind), 7))
