@@ -459,6 +459,10 @@ def limbed_summary(rows):
     if best is not quad:
         out.append("MuJoCo's best interpolated flex on error x ms:")
         out += compare_to(ok, best, "rms_vs_fem", METRIC_NAMES)
+    finest = min(sub, key=lambda r: r["rms_vs_fem"])
+    if finest is not quad and finest is not best:
+        out.append("MuJoCo's most accurate interpolated flex:")
+        out += compare_to(ok, finest, "rms_vs_fem", METRIC_NAMES)
     fullflex = next((r for r in mjr if r.get("dof") == "full"), None)
     ours = [r for r in ok if r["who"] == "mdss" and not r["label"].startswith("mdss full")]
     if fullflex is not None and ours:
