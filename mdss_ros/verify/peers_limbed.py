@@ -389,7 +389,8 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
             if dof == "full" and cells is None:
                 x_mjfull = r["x"]
             log(f"peers (limbed): {label}: {row['dofs']} DOFs, {row['step_ms']:.3f} ms/step, settled {r['settled']} "
-                f"after {r['settle_steps']} steps (max |qvel| {r['final_max_qvel']:.2g}) [{time.perf_counter() - t0:.1f} s]"
+                f"after {r['settle_steps']} steps (max |qvel| {r['final_max_qvel']:.2g}) "
+                f"[{time.perf_counter() - t0:.1f} s]"
                 + (f"; MuJoCo warned: {' | '.join(r['warnings'])[:160]}" if r["warnings"] else ""))
 
     for label, ov in (OURS_QUICK if quick else OURS):
@@ -481,7 +482,8 @@ def limbed_table(rows, loaded):
         if "failed" in r:
             body.append([r["label"], "-", "-", "failed: " + r["failed"][:40], "-", "-", "-", "-"])
             continue
-        body.append([r["label"] + (" [not settled]" if r.get("settled") is False else ""), r["dofs"], f"{r['step_ms']:.3g}", pct(r["rms_vs_fem"]), pct(r.get("rms_vs_mjfull")),
+        label = r["label"] + (" [not settled]" if r.get("settled") is False else "")
+        body.append([label, r["dofs"], f"{r['step_ms']:.3g}", pct(r["rms_vs_fem"]), pct(r.get("rms_vs_mjfull")),
                      pct(r["tip_loaded"]), f"{pct(r.get('tip_unloaded'))} ({r.get('tip_unloaded_handle', '-')})",
                      f"{r['error_x_ms'] * 100:.3g}"])
     return format_table(["model", "DOFs", "ms/step", "RMS err vs our FEM %", "RMS err vs MuJoCo full %",
