@@ -9,8 +9,8 @@ What MuJoCo 4.0.0's flexcomp accepts (small experiments with `import mujoco`, 4.
 
 - type="direct" with point= (n_verts x 3) and element= (n_tets x 4): our own tet mesh,
   vertex order kept (no vertex is unreferenced in our meshes). Works with dof="full",
-  "trilinear" and "quadratic". (type="mesh" builds a flex from a surface mesh file; our
-  tet mesh is given directly, so it is not used.)
+  "trilinear" and "quadratic". (type="mesh" builds a flex from a mesh file; not tried
+  here: our own tet mesh goes in directly.)
 - dof="trilinear" / "quadratic" on a direct flex: the vertices are interpolated from a
   node lattice on the body's axis-aligned bounding box, 2^3 / 3^3 nodes by default, every
   vertex from the same single cell. The attribute cellcount="cx cy cz" (present in 4.0.0)
