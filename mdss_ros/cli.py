@@ -440,13 +440,15 @@ def main(argv=None):
     p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser("tradeoff", help="speed vs accuracy sweep of a scene's model against full-space FEM "
-                                        "(JSON, Pareto PNG, table; MuJoCo flex peers for a clamped beam)")
+                                        "(JSON, Pareto PNG, table; MuJoCo flex peers for a clamped beam "
+                                        "or a limbed body such as star_limbs)")
     p.add_argument("scene", help="scene file or name in msg_scenes/")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--quick", action="store_true", help="a few configurations over 1 s (the slow test)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="tradeoff.NAME=V changes a study setting (horizon, warmup, probe_every, "
-                        "truth_newton_iterations, truth_tolerance, variants, peers); other keys override the scene")
+                        "truth_newton_iterations, truth_tolerance, variants, peers, peers_only: the MuJoCo "
+                        "peer comparison alone); other keys override the scene")
     p.set_defaults(func=cmd_tradeoff)
 
     p = sub.add_parser("stability", help="stability matrix: material x stiffness x dt x spin x force "

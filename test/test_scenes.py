@@ -45,6 +45,7 @@ FAST = {
     "octopus": ({"body.mesh": {"generator": "voxels", "cell": 0.03, "primitives": octopus_primitives()},
                  "model.modes": 4, "model.cubature": _cubature()}, 50),
     "soft_finger": ({"body.mesh.cell": 0.005, "model.modes": 6, "model.cubature": _cubature()}, 55),
+    "star_limbs": ({"body.mesh.cell": 0.03, "model.modes": 4, "model.cubature": _cubature()}, 60),
 }
 
 

@@ -185,12 +185,15 @@ def match_vertices(X_ours, X_other, tol=1e-7):
 
 
 # ---------------------------------------------------------------------- ours
-def ours_static_sag(sim, tol=1e-9, max_steps=40):
+def ours_static_sag(sim, tol=1e-9, max_steps=40, loads=None):
     """Static equilibrium of a built reduced Simulator under gravity (see the module
-    docstring); the model's dt and Newton settings are restored after. Returns x (n, 3)."""
+    docstring); the model's dt and Newton settings are restored after. loads: called with
+    sim after its reset to apply held loads (e.g. sim.set_wrench). Returns x (n, 3)."""
     m = sim.model
     saved = (m.dt, m.newton_iterations, m.tolerance)
     sim.reset()
+    if loads is not None:
+        loads(sim)
     m.set_dt(10.0)
     m.newton_iterations, m.tolerance = 10, 1e-10
     X = sim.rest_positions()
@@ -376,15 +379,16 @@ METRIC_NAMES = {"err_closed_form": "|sag error| vs the closed form",
                 "rms_rel_vs_fem": "RMS surface error vs our full-space FEM statics on the same grid"}
 
 
-def compare_to(rows, peer, metric):
+def compare_to(rows, peer, metric, names=None):
     """Sentences comparing our reduced rows with one peer row on one error metric
-    (|value|, lower is better) and on error x ms."""
+    (|value|, lower is better) and on error x ms. names: metric -> description
+    (default METRIC_NAMES)."""
     ours = [r for r in rows if "failed" not in r and r["who"] == "mdss" and not r["label"].startswith("mdss full")
             and r.get(metric) is not None]
     if not ours or peer.get(metric) is None:
         return []
     ep = abs(peer[metric])
-    out = [f"[{METRIC_NAMES[metric]}] {peer['label']}: {100 * ep:.3g} % at {peer['step_ms']:.3g} ms/step"]
+    out = [f"[{(names or METRIC_NAMES)[metric]}] {peer['label']}: {100 * ep:.3g} % at {peer['step_ms']:.3g} ms/step"]
     better = sorted((r for r in ours if abs(r[metric]) <= ep), key=lambda r: r["step_ms"])
     if better:
         b = better[0]

@@ -31,7 +31,10 @@ Outputs: DIR/tradeoff.json (every number, the configurations as scene overrides,
 Pareto front), DIR/tradeoff_pareto.png (ms/step vs error, log axes, front highlighted,
 each point labelled) and a printed table to pick a configuration from. For a clamped
 box beam the peer comparison with MuJoCo's flex (verify/peers.py) runs in the same
-report (DIR/tradeoff_peers.png).
+report (DIR/tradeoff_peers.png); for a limbed body (pinned on one face of its bounding box,
+handles, a wrench in the timeline: msg_scenes/star_limbs.yaml) the static comparison of
+verify/peers_limbed.py does (DIR/tradeoff_peers_limbed.png). `--set tradeoff.peers_only=true`
+runs the peer comparison alone (no sweep, no ground-truth run).
 
 --set KEY=VALUE: keys `tradeoff.NAME` change a study setting (SETTINGS); other keys
 override the scene (the base configuration every variant starts from).
@@ -56,7 +59,8 @@ SETTINGS = {
     "truth_newton_iterations": 30,
     "truth_tolerance": 1e-8,          # Newton residual relative to its first, every truth step
     "variants": "sweep",              # sweep | quick
-    "peers": True,                    # MuJoCo flex comparison when the scene is a clamped box beam
+    "peers": True,                    # MuJoCo flex comparison (clamped box beam, or a limbed body)
+    "peers_only": False,              # only the peer comparison: skip the sweep and its ground truth
     "timing_rounds": 3,               # round-robin re-timing passes over all configurations
     "timing_steps": 60,               # steps per configuration and pass (after warm-up)
 }
@@ -423,6 +427,8 @@ def tradeoff_report(scene_src, out, quick=False, settings=None, scene_overrides=
     if cfg["horizon"] is None:
         cfg["horizon"] = float(scene["duration"])
     cfg["horizon"] = min(float(cfg["horizon"]), float(scene["duration"])) if not quick else float(cfg["horizon"])
+    if cfg["peers_only"]:
+        return _peers_only_report(scene_src, scene, base, cfg, out, quick, log)
     variants = sweep_variants(scene["model"], cfg["variants"])
     log(f"scene {scene.name!r} ({scene.source}): {len(variants)} configurations, horizon {cfg['horizon']:.3g} s, "
         f"dt {_dt_label(scene.dt)}, probes every {cfg['probe_every']:.4g} s")
@@ -461,14 +467,33 @@ def tradeoff_report(scene_src, out, quick=False, settings=None, scene_overrides=
               "metrics": METRICS,
               "plots": plots, "table": table, "notes": notes}
     if cfg["peers"]:
-        from .peers import beam_peer_comparison, is_clamped_box_beam
-        if is_clamped_box_beam(scene):
-            result["peers"] = beam_peer_comparison(scene_src, base, out, quick=quick, log=log,
-                                                       timing_rounds=int(cfg["timing_rounds"]))
-            plots += result["peers"].get("plots", [])
-        else:
-            result["peers"] = {"skipped": "the peer comparison needs a clamped box beam scene (box mesh, pins)"}
+        result["peers"] = peer_comparison(scene_src, scene, base, cfg, out, quick, log)
+        plots += result["peers"].get("plots", [])
     return result
+
+
+def peer_comparison(scene_src, scene, base, cfg, out, quick, log):
+    """The MuJoCo peer comparison that fits the scene: the clamped beam's (peers.py) or the
+    limbed body's (peers_limbed.py); {"skipped": why} for other scenes."""
+    from .peers import beam_peer_comparison, is_clamped_box_beam
+    from .peers_limbed import is_limbed_scene, limbed_peer_comparison
+    kw = dict(quick=quick, log=log, timing_rounds=int(cfg["timing_rounds"]))
+    if is_clamped_box_beam(scene):
+        return dict(beam_peer_comparison(scene_src, base, out, **kw), kind="beam")
+    if is_limbed_scene(scene):
+        return dict(limbed_peer_comparison(scene_src, base, out, timing_steps=int(cfg["timing_steps"]), **kw),
+                    kind="limbed")
+    return {"skipped": "the peer comparison needs a clamped box beam (box mesh, x = 0 face pinned) or a limbed "
+                       "body (pins on one face of its bounding box, two or more handles, a wrench in the timeline)"}
+
+
+def _peers_only_report(scene_src, scene, base, cfg, out, quick, log):
+    """tradeoff.peers_only: the peer comparison without the sweep."""
+    log(f"scene {scene.name!r} ({scene.source}): peer comparison only (tradeoff.peers_only)")
+    peers = peer_comparison(scene_src, scene, base, cfg, out, quick, log)
+    return {"scene": scene.name, "source": scene.source, "config": dict(cfg, quick=quick, scene_overrides=base),
+            "rows": [], "pareto_front": [], "metrics": METRICS, "plots": list(peers.get("plots", [])),
+            "table": "(sweep skipped: tradeoff.peers_only)", "notes": [], "peers": peers}
 
 
 def tradeoff_table(rows):
@@ -547,7 +572,9 @@ def run_tradeoff(scene_src, out, quick=False, sets=None):
         print(f"  note: {note}")
     peers = result.get("peers") or {}
     if peers.get("table"):
-        print(f"\n== peers: static gravity sag of the clamped beam ==\n{peers['table']}")
+        what = ("static equilibrium of the limbed body under gravity + one arm's tip force (MuJoCo flex on the "
+                "same tet mesh)" if peers.get("kind") == "limbed" else "static gravity sag of the clamped beam")
+        print(f"\n== peers: {what} ==\n{peers['table']}")
         for line in peers.get("summary", []):
             print(f"  {line}")
     elif peers.get("skipped"):
