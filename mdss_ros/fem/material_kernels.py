@@ -355,11 +355,14 @@ def _views(work):
 # ---------------------------------------------------------------------------------------
 @njit(**_JIT)
 def _stvk_frame(s, s_min, mu, lam, g, H, fl, tw):
-    """Principal data of StVK evaluated at s_hat = max(s, s_min).
+    """Principal data of StVK evaluated at s_hat = max(s, s_min), extrapolated below s_min.
 
-    g: principal stress at s_hat; H[i, j] = dpsihat/ds_i ds_j (s_hat) * [s_j unclamped];
+    g: principal stress, g_i = p_i(s_hat) + k (s_i - s_min) [s_i < s_min] with k = 2 mu + lam
+    (the rest stiffness along one axis: the restoring stress grows with the depth of
+    compression or inversion, Irving et al. 2004, instead of staying at its value at s_min);
+    H[i, j] = dg_i/ds_j: d p_i/ds_j (s_hat) * [s_j unclamped] + k [i == j clamped];
     fl/tw: flip/twist eigenvalues of d(U diag(g) V^T)/dF. Returns (psi, n_clamped),
-    psi = psihat(s_hat) + sum_{clamped i} g_i (s_i - s_min).
+    psi = psihat(s_hat) + sum_{clamped i} (p_i(s_hat) (s_i - s_min) + k/2 (s_i - s_min)^2).
     """
     sh0 = max(s[0], s_min)
     sh1 = max(s[1], s_min)
@@ -374,15 +377,17 @@ def _stvk_frame(s, s_min, mu, lam, g, H, fl, tw):
     sh = (sh0, sh1, sh2)
     ee = (e0, e1, e2)
     n_cl = 0
+    ex = (min(s[0] - s_min, 0.0) * d, min(s[1] - s_min, 0.0) * d, min(s[2] - s_min, 0.0) * d)
     for i in range(3):
         Si = 2.0 * mu * ee[i] + lam * tr
         g[i] = Si * sh[i]
         if s[i] < s_min:
             n_cl += 1
-            psi += g[i] * (s[i] - s_min)
+            psi += (g[i] + 0.5 * ex[i]) * (s[i] - s_min)
+            g[i] += ex[i]
         for j in range(3):
             if s[j] < s_min:
-                H[i, j] = 0.0
+                H[i, j] = d if i == j else 0.0
             elif i == j:
                 H[i, j] = Si + d * sh[i] * sh[i]
             else:
@@ -399,11 +404,12 @@ def _stvk_frame(s, s_min, mu, lam, g, H, fl, tw):
             fl[k] = fbase
             tw[k] = tbase
         else:
+            # (g_i -+ g_j) / (s_i -+ s_j) with the extrapolation ex in g
             if ci and cj:
-                fl[k] = 0.0
+                fl[k] = d
             else:
-                fl[k] = fbase * (si - sj) / (s[i] - s[j])
-            tw[k] = tbase * (si + sj) / max(s[i] + s[j], TWIST_DENOM_MIN)
+                fl[k] = (fbase * (si - sj) + ex[i] - ex[j]) / (s[i] - s[j])
+            tw[k] = (tbase * (si + sj) + ex[i] + ex[j]) / max(s[i] + s[j], TWIST_DENOM_MIN)
     return psi, n_cl
 
 
@@ -499,8 +505,9 @@ def stvk_point_ws(F, mu, lam, s_min, P_out, dPdF_out, want_hessian, project, wor
 def stvk_point(F, mu, lam, s_min, P_out, dPdF_out, want_hessian, project):
     """St. Venant-Kirchhoff, psi = mu E:E + lam/2 tr(E)^2, E = (F^T F - I)/2, P = F S.
 
-    Closed form when min signed singular value > s_min; otherwise P = U diag(p(s_hat)) V^T
-    with s_hat = max(s, s_min) and psi = psihat(s_hat) + sum_{s_i < s_min} p_i(s_hat) (s_i - s_min)
+    Closed form when min signed singular value > s_min; otherwise P = U diag(g) V^T with
+    g_i = p_i(s_hat) + k min(s_i - s_min, 0), s_hat = max(s, s_min), k = 2 mu + lam, and
+    psi = psihat(s_hat) + sum_{s_i < s_min} (p_i(s_hat) (s_i - s_min) + k/2 (s_i - s_min)^2)
     (not the potential of P there; dPdF is the exact derivative of that P and not symmetric).
     Writes P_out (3, 3) and, if want_hessian, dPdF_out (9, 9); returns psi.
     """

@@ -20,13 +20,19 @@ Materials (``name``, ``kind_id``)
     ``psi = mu E:E + lam/2 tr(E)^2``. When the smallest signed singular value is
     >= ``s_min`` (in particular det F > 0) the closed form is used, with
     ``dP = dF S + F dS``. Below ``s_min`` (always when det F <= 0) the principal stress is
-    evaluated at ``s_hat = max(s, s_min)`` and ``P = U diag(p(s_hat)) V^T``; ``dPdF`` is the
-    exact derivative of that P (isotropic SVD formulas, clamped coordinates have
-    ``d s_hat / d s = 0``), which is NOT symmetric: P is no longer the gradient of an energy.
-    The reported energy there is ``psihat(s_hat) + sum_{i: s_i < s_min} p_i(s_hat) (s_i - s_min)``
+    evaluated at ``s_hat = max(s, s_min)`` and extrapolated linearly with the rest stiffness
+    ``k = 2 mu + lam``: ``g_i = p_i(s_hat) + k min(s_i - s_min, 0)``, ``P = U diag(g) V^T``.
+    (A stress held constant below s_min gives no growing restoring force: a 1 kPa StVK
+    cantilever under its own weight, stretched 2.2x along its top fibres, had lam tr E make
+    the clamped stress tensile and flattened elements through inversion. With the
+    extrapolation, as in Irving et al. 2004, the push back grows with the depth of
+    compression or inversion.) ``dPdF`` is the exact derivative of that P (isotropic SVD
+    formulas, clamped coordinates have ``d s_hat / d s = 0``), which is NOT symmetric: P is
+    no longer the gradient of an energy. The reported energy there is
+    ``psihat(s_hat) + sum_{i: s_i < s_min} (p_i(s_hat) (s_i - s_min) + k/2 (s_i - s_min)^2)``
     (continuous at ``s_min``; its derivative along a clamped singular value equals the
     force component, so an energy-based line search sees the inversion penalty grow
-    linearly with the depth of inversion).
+    with the depth of inversion).
 
     Default ``s_min = 0.5``. StVK's uniaxial principal stress ``p(s) = (mu + lam/2)(s^3 - s)``
     has its largest compressive magnitude at ``s = 1/sqrt(3) ~ 0.577``, decays to 0 at
@@ -43,8 +49,9 @@ Materials (``name``, ``kind_id``)
     lateral stress ``lam tr E`` that expands the two other axes, which for an inverted
     element makes J more negative. For ``F = diag(1, 1, s2 < 0)`` the gradient step increases
     J iff ``s_min > -2 s2 nu / (1 - nu)``; with the default that is nu < 1/3 at
-    diag(1, 1, -0.5). Under strong lateral stretch ``lam tr E`` can even make the clamped
-    stress tensile. Prefer ``neohookean`` or ``corotated`` when elements invert routinely
+    diag(1, 1, -0.5) (without the extrapolation; it only adds push back). Under strong
+    lateral stretch ``lam tr E`` can make ``p_i(s_hat)`` tensile; the extrapolation then still
+    pushes back below ``s_min - p_i(s_hat) / k``. Prefer ``neohookean`` or ``corotated`` when elements invert routinely
     or nu is near 0.5.
 
 ``corotated`` (1) -- fixed corotated (Stomakhin et al. 2012):
@@ -291,7 +298,7 @@ def signed_svd(F):
 
 
 def reference_stvk(F, mu, lam, s_min=STVK_S_MIN_DEFAULT):
-    """numpy (psi, P) of StVK with the s_min clamp, F (m, 3, 3)."""
+    """numpy (psi, P) of StVK with the s_min clamp and its extrapolation, F (m, 3, 3)."""
     F = np.asarray(F, dtype=np.float64)
     eye = np.eye(3)
     C = np.einsum("mki,mkj->mij", F, F)
@@ -307,9 +314,11 @@ def reference_stvk(F, mu, lam, s_min=STVK_S_MIN_DEFAULT):
         e = 0.5 * (sh ** 2 - 1.0)
         tr = e.sum(axis=1)
         g = (2.0 * mu * e + lam * tr[:, None]) * sh
+        depth = np.minimum(s[cl] - s_min, 0.0)               # below the clamp: extrapolated
+        k = 2.0 * mu + lam
         psi[cl] = (mu * (e ** 2).sum(axis=1) + 0.5 * lam * tr ** 2
-                   + np.where(s[cl] < s_min, g * (s[cl] - s_min), 0.0).sum(axis=1))
-        P[cl] = np.einsum("mik,mk,mjk->mij", U[cl], g, V[cl])
+                   + (g * depth + 0.5 * k * depth ** 2).sum(axis=1))
+        P[cl] = np.einsum("mik,mk,mjk->mij", U[cl], g + k * depth, V[cl])
     return psi, P
 
 
