@@ -79,3 +79,24 @@ def test_stability_quick_matrix(tmp_path):
         assert (tmp_path / f"stability_{kind}.png").stat().st_size > 10_000
     failed = check_report(report)
     assert out.returncode == (1 if failed else 0)
+
+
+def test_observation_window_after_release():
+    """A cell left inverted is observed on for up to OBSERVE_TRANSITS shear-wave transits
+    after the release (capped): 0.28 s per transit for the 1 kPa, nu = 0 box."""
+    from mdss_ros.verify import stability_study as st
+    assert st.transit_time(1e3, 0.0) == pytest.approx(0.2 / (500.0 / 1000.0) ** 0.5)
+    steps = st.STEPS
+    after = steps - steps // 2
+    cell = dict(young=1e3, poisson=0.0, dt=1.0 / 30.0)
+    assert st.extra_steps(cell, steps) == int(-(-4 * st.transit_time(1e3, 0.0) * 30 // 1)) - after == 22
+    assert st.extra_steps(dict(cell, dt=1.0 / 90.0), steps) == 102 - after
+    assert st.extra_steps(dict(cell, dt=1e-4), steps) == st.OBSERVE_MAX_STEPS        # capped
+    assert st.extra_steps(dict(cell, young=1e11), steps) == 0                         # stiff: no extension
+
+
+def test_a_stable_cell_runs_its_steps_only():
+    from mdss_ros.verify.stability_study import BASE, run_cell
+    r = run_cell("full", "corotated", BASE, 8)
+    assert r["status"] == "stable" and r["steps_run"] == 8 and r["inverted_release"] == 0
+    assert r["inverted_end"] == 0 and not r["why"]
