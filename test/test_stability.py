@@ -16,28 +16,20 @@ def expected_failure(r):
     reasons it covers; anything else, and any non-finite state or energy created, fails
     the test.
 
-    crushed: a 1 kPa body loaded far beyond its modulus. The tip load at force scale 1e3
-        is a stress of ~1e5 Pa (100 E); the clamped beam's self-weight rho g L ~ 2 kPa (2 E).
-        Elements are pushed through and stay inverted after the load is released. StVK
-        collapses under that compression (its invertible clamp keeps only a weak restoring
-        force, fem/materials.py), so every StVK cell at 1 kPa may end inverted; the other
-        materials may at force scale 1e3.
-    interface: the reduced model at 1 kPa hangs 2.5 x its length under gravity; its coupling
-        elements invert (METHOD.md section 9: "inverted coupling elements" under large
-        deformation; checked: the inverted tets are coupling elements).
-    spun up: the reduced model, a free body under the 1 kN tip load at dt = 1/30: the load
-        spins the 2 kg body up to ~1e3 rad/s, tens of radians per step. No rung of the
-        guard's ladder (64 sub-steps, 4 Newton iterations, implicit fictitious forces) gives
-        an energy-bounded step there; the guard holds the last good state (no NaN out).
+    crushed: a 1 kPa body under the 1 kN tip load of force scale 1e3, a stress of ~1e5 Pa
+        (100 E). No model holds it without inverted tets while it is applied (full run: 9 to
+        144 inverted tets at release; the full neo-Hookean cantilever's tip is 48 m below
+        its clamp). After the release the study observes the body for up to 4 shear-wave
+        transits (stability_study.py); the neo-Hookean bodies and the reduced corotated
+        cantilever un-invert in that window, while StVK (full and reduced, nu 0), the fixed
+        corotated cantilever at nu 0 (no volumetric term: lam = 0) and the reduced spinning
+        free bodies at nu 0.499 (corotated, neo-Hookean) are re-inverted by their own
+        snap-backs and still hold inverted tets at its end. Inverted tets are the only
+        reason allowed.
     """
-    inverted_only = all("inverted" in w or "not recoverable" in w for w in r["why"])
-    if r["young"] == 1e3 and (r["material"] == "stvk" or r["force"] == 1e3) and inverted_only:
+    inverted_only = all("inverted" in w for w in r["why"])
+    if r["young"] == 1e3 and r["force"] == 1e3 and inverted_only:
         return "crushed"
-    if r["kind"] == "reduced" and r["young"] == 1e3 and all("inverted" in w for w in r["why"]):
-        return "interface"
-    if (r["kind"] == "reduced" and r["spin"] > 0 and r["force"] == 1e3 and r["dt"] > 0.03
-            and all("not recoverable" in w for w in r["why"])):
-        return "spun up"
     return None
 
 
