@@ -30,6 +30,13 @@ with `newton_iterations` Newton iterations (backward Euler solved properly inste
 linearly implicit), for a reduced model whose fictitious forces are explicit (the papers')
 then also with implicit fictitious forces (ReducedModel.fictitious = "implicit"), then dt
 split into 2, 4, ... `max_substeps` sub-steps (each checked on its own) with all of that.
+On that last rung a sub-step whose only hard signs are "energy" / "energy drift" gets an
+energy projection (`project_energy`, in the spirit of Dinev, Liu and Kavan 2018,
+"Stabilizing integrators for real-time physics", ACM TOG 37(1)): the velocities relative to
+the mass centre are scaled so that the total energy does not exceed its budget, the energy
+before the sub-step plus the work of the loads over it; linear momentum is kept. It cannot
+remove energy the positions hold (elastic or potential energy above the budget): such a
+sub-step stays rejected. (It does not pay back drift accepted earlier; it stops its growth.)
 The first attempt that passes is kept ("recovered"); soft signs alone stop the ladder at
 SOFT_MAX_SUBSTEPS sub-steps.
 If none passes the hard checks, the state before the step is restored and the step is
@@ -39,9 +46,11 @@ simulation goes on, holding its last good state).
 Per step the guard reports (merged into Simulator.stats()):
   stability "stable" | "recovered" | "degraded" (soft signs left) | "failed",
   guard_reason (what was detected first), guard_action (what fixed it), guard_attempts,
-  guard_substeps, guard_indefinite_steps (accepted steps whose reduced system matrix was
+  guard_substeps, guard_projected (kinetic energy removed by energy projections in the step,
+  J), guard_indefinite_steps (accepted steps whose reduced system matrix was
   indefinite and solved by LU, see ReducedModel._solve), guard_work (work of the loads and contacts over the step, as the model
-  accounts it), and running totals guard_recoveries, guard_failures, guard_degraded.
+  accounts it), and running totals guard_recoveries, guard_failures, guard_degraded,
+  guard_projections (steps kept with an energy projection).
 """
 from dataclasses import dataclass, field
 
@@ -59,6 +68,8 @@ SOFT_MAX_SUBSTEPS = 4
 #: Newton "diverged": its last residual is this many times its first (a line search keeps
 #: the incremental potential decreasing, but the residual norm need not fall monotonically).
 NEWTON_DIVERGED = 10.0
+#: Hard signs an energy projection may clear (see project_energy).
+ENERGY_SIGNS = frozenset(("energy", "energy drift"))
 
 
 @dataclass
@@ -71,6 +82,7 @@ class GuardSettings:
     max_substeps: int = 64
     newton_iterations: int = 4
     inversion: bool = True
+    energy_projection: bool = True
 
     @classmethod
     def from_scene(cls, section):
@@ -167,7 +179,7 @@ class StabilityGuard:
     def reset(self):
         """Forget the cached measurement and the running totals (Simulator.reset)."""
         self.totals = {"guard_recoveries": 0, "guard_failures": 0, "guard_degraded": 0,
-                       "guard_substeps_total": 0, "guard_indefinite_steps": 0}
+                       "guard_substeps_total": 0, "guard_indefinite_steps": 0, "guard_projections": 0}
         self.last_event = ""
         self.invalidate()
 
@@ -254,18 +266,21 @@ class StabilityGuard:
         ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
             ([(1, newton, True)] if implicit else []) + \
             [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
+        # The last rung may project energy (module docstring): the most careful integration
+        # first, the projection only for what is left of the energy it created.
+        ladder = [rung + (s.energy_projection and i == len(ladder) - 1,) for i, rung in enumerate(ladder)]
         first_reason, best = None, None
-        for attempt, (n_sub, newton, implicit) in enumerate(ladder):
+        for attempt, (n_sub, newton, implicit, project) in enumerate(ladder):
             if attempt:
                 restore(snap)
-            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit)
+            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit, project)
             stats, verdict, after = result
             if verdict.ok:
                 break
             if first_reason is None:
                 first_reason = ",".join(verdict.hard + verdict.soft)
             if not verdict.hard and (best is None or verdict.inverted < best[1].inverted):
-                best = (attempt, verdict, save(), stats, after, self._work)
+                best = (attempt, verdict, save(), stats, after, self._work, self._projected)
             if not verdict.hard and n_sub >= SOFT_MAX_SUBSTEPS:
                 # Soft signs that survive sub-steps are usually physical (a crushed element):
                 # do not spend the whole ladder on them every step.
@@ -278,25 +293,31 @@ class StabilityGuard:
         if attempt == 0:
             report["stability"] = "stable"
         elif attempt is not None:
-            n_sub, newton, implicit = ladder[attempt]
-            report.update(stability="recovered", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit))
+            n_sub, newton, implicit, _ = ladder[attempt]
+            report.update(stability="recovered", guard_substeps=n_sub,
+                          guard_action=_action(n_sub, newton, implicit, self._projected[0] > 0))
             self.totals["guard_recoveries"] += 1
         elif best is not None:
             # Soft signs everywhere: keep the finite attempt with the fewest inverted tets.
-            attempt, verdict, state, stats, after, self._work = best
+            attempt, verdict, state, stats, after, self._work, self._projected = best
             restore(state)
-            n_sub, newton, implicit = ladder[attempt]
-            report.update(stability="degraded", guard_substeps=n_sub, guard_action=_action(n_sub, newton, implicit),
+            n_sub, newton, implicit, _ = ladder[attempt]
+            report.update(stability="degraded", guard_substeps=n_sub,
+                          guard_action=_action(n_sub, newton, implicit, self._projected[0] > 0),
                           guard_left=",".join(verdict.soft))
             self.totals["guard_degraded"] += 1
         else:
             restore(snap)
             after = before
             self._work = 0.0
+            self._projected = (0, 0.0)
             stats = dict(stats or {})
             report.update(stability="failed", guard_action="rolled back to the last good state")
             self.totals["guard_failures"] += 1
         self.totals["guard_substeps_total"] += report["guard_substeps"]
+        report["guard_projected"] = float(self._projected[1])
+        if self._projected[0]:
+            self.totals["guard_projections"] += 1
         if report["stability"] != "failed" and isinstance(stats, dict) and stats.get("indefinite_system"):
             # The reduced solver met an indefinite A and took an LU Newton step; the checks
             # above accepted its result. Counted so a run shows how often that happened.
@@ -314,10 +335,11 @@ class StabilityGuard:
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
 
-    def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False):
+    def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False, project=False):
         """Run n_sub sub-steps (optionally with more Newton iterations and implicit fictitious
-        forces), judging each. Returns (model stats, Verdict, Measure after) and stops at the
-        first bad sub-step."""
+        forces), judging each; project=True: a sub-step with only energy signs gets an energy
+        projection and is judged again (self._projected counts them: (sub-steps, J removed)).
+        Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
         model = self.model
         restore_newton = _set_newton(model, newton) if newton else None
         if implicit:
@@ -325,6 +347,7 @@ class StabilityGuard:
         loaded = None if hasattr(model, "guard_measure") else sparse_loads(f_app)     # (ids, forces)
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
         self._work = 0.0
+        self._projected = (0, 0.0)
         try:
             model.set_dt(dt / n_sub)
             for k in range(1, n_sub + 1):
@@ -342,6 +365,17 @@ class StabilityGuard:
                              stats.get("external_work") if isinstance(stats, dict) else None,
                              stats.get("contact_work") if isinstance(stats, dict) else None)
                 v = self.judge(prev, after, work, stats, gravity)
+                if project and v.hard and set(v.hard) <= ENERGY_SIGNS:
+                    # Budget: no energy created by this sub-step (E <= E_before + work); the
+                    # drift check only judges sub-steps that create energy, so this clears it too.
+                    # (a hair below it: landing exactly on it leaves round-off growth, which
+                    # the drift check would judge.)
+                    excess = after.total - (prev.total + work)
+                    removed = project_energy(model, after, excess + 1e-9 * abs(excess) + 1e-12 * after.kinetic)
+                    if removed is not None:
+                        after = measure(model, self.tets, gravity, self.settings.inversion)
+                        v = self.judge(prev, after, work, stats, gravity)
+                        self._projected = (self._projected[0] + 1, self._projected[1] + removed)
                 if v.hard:
                     return stats, v, after
                 # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
@@ -356,6 +390,42 @@ class StabilityGuard:
             if implicit:
                 model.fictitious = "explicit"
         return stats, verdict, prev
+
+
+def mean_motion(model):
+    """(total mass M, mass-centre velocity V (3,)) of a model; V = 0 when pins hold the body
+    (then nothing conserves momentum and all motion is scaled)."""
+    if hasattr(model, "mean_motion"):
+        return model.mean_motion()
+    m = model.vertex_mass
+    if model.body.pinned.size:
+        return float(m.sum()), np.zeros(3)
+    return float(m.sum()), (m[:, None] * model.vertex_velocities()).sum(0) / m.sum()
+
+
+def project_energy(model, after, excess):
+    """Energy projection: remove `excess` J (> 0) of kinetic energy from the model's current
+    state, measured as `after` (Measure), by scaling the motion relative to the mass centre,
+    v <- V + s (v - V) (ReducedModel.scale_relative_motion for the reduced model). With
+    E_kin = 1/2 M |V|^2 + E_rel (no cross term: V is the mass-weighted mean velocity),
+    s = sqrt((E_rel - excess) / E_rel) takes exactly `excess` out and keeps linear momentum;
+    angular momentum about the mass centre scales by s. Returns the energy removed, or None
+    when it cannot be done (excess not positive or not below E_rel: positions hold the
+    created energy)."""
+    if not (excess > 0.0) or not after.finite:
+        return None
+    M, V = mean_motion(model)
+    rel = after.kinetic - 0.5 * M * float(V @ V)
+    if not (rel > excess):
+        return None
+    s = float(np.sqrt((rel - excess) / rel))
+    if hasattr(model, "scale_relative_motion"):
+        model.scale_relative_motion(s, V)
+    else:
+        v = V + s * (np.asarray(model.vertex_velocities()) - V)
+        v[model.body.pinned] = 0.0
+        model.v = v
+    return float(excess)
 
 
 def _work(f_app, loaded, before, after, contact, model_work=None, contact_work=None):
@@ -401,7 +471,7 @@ def _set_newton(model, iterations):
     return undo
 
 
-def _action(n_sub, newton, implicit=False):
+def _action(n_sub, newton, implicit=False, projected=False):
     parts = []
     if newton:
         parts.append(f"{newton} Newton iterations")
@@ -409,6 +479,8 @@ def _action(n_sub, newton, implicit=False):
         parts.append("implicit fictitious forces")
     if n_sub > 1:
         parts.append(f"{n_sub} sub-steps")
+    if projected:
+        parts.append("energy projection")
     return "rollback, " + " x ".join(parts) if parts else "rollback"
 
 

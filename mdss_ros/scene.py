@@ -127,6 +127,7 @@ SCHEMA = {
             "max_substeps": (_posint, 64),
             "newton_iterations": (_posint, 4),
             "inversion": (_bool, True),
+            "energy_projection": (_bool, True),
         },
     },
     "initial_velocity": {"linear": (_vec3, [0.0, 0.0, 0.0]), "angular": (_vec3, [0.0, 0.0, 0.0])},

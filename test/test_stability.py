@@ -16,28 +16,20 @@ def expected_failure(r):
     reasons it covers; anything else, and any non-finite state or energy created, fails
     the test.
 
-    crushed: a 1 kPa body loaded far beyond its modulus. The tip load at force scale 1e3
-        is a stress of ~1e5 Pa (100 E); the clamped beam's self-weight rho g L ~ 2 kPa (2 E).
-        Elements are pushed through and stay inverted after the load is released. StVK
-        collapses under that compression (its invertible clamp keeps only a weak restoring
-        force, fem/materials.py), so every StVK cell at 1 kPa may end inverted; the other
-        materials may at force scale 1e3.
-    interface: the reduced model at 1 kPa hangs 2.5 x its length under gravity; its coupling
-        elements invert (METHOD.md section 9: "inverted coupling elements" under large
-        deformation; checked: the inverted tets are coupling elements).
-    spun up: the reduced model, a free body under the 1 kN tip load at dt = 1/30: the load
-        spins the 2 kg body up to ~1e3 rad/s, tens of radians per step. No rung of the
-        guard's ladder (64 sub-steps, 4 Newton iterations, implicit fictitious forces) gives
-        an energy-bounded step there; the guard holds the last good state (no NaN out).
+    crushed: a 1 kPa body under the 1 kN tip load of force scale 1e3, a stress of ~1e5 Pa
+        (100 E). No model holds it without inverted tets while it is applied (full run: 9 to
+        144 inverted tets at release; the full neo-Hookean cantilever's tip is 48 m below
+        its clamp). After the release the study observes the body for up to 4 shear-wave
+        transits (stability_study.py); the neo-Hookean bodies and the reduced corotated
+        cantilever un-invert in that window, while StVK (full and reduced, nu 0), the fixed
+        corotated cantilever at nu 0 (no volumetric term: lam = 0) and the reduced spinning
+        free bodies at nu 0.499 (corotated, neo-Hookean) are re-inverted by their own
+        snap-backs and still hold inverted tets at its end. Inverted tets are the only
+        reason allowed.
     """
-    inverted_only = all("inverted" in w or "not recoverable" in w for w in r["why"])
-    if r["young"] == 1e3 and (r["material"] == "stvk" or r["force"] == 1e3) and inverted_only:
+    inverted_only = all("inverted" in w for w in r["why"])
+    if r["young"] == 1e3 and r["force"] == 1e3 and inverted_only:
         return "crushed"
-    if r["kind"] == "reduced" and r["young"] == 1e3 and all("inverted" in w for w in r["why"]):
-        return "interface"
-    if (r["kind"] == "reduced" and r["spin"] > 0 and r["force"] == 1e3 and r["dt"] > 0.03
-            and all("not recoverable" in w for w in r["why"])):
-        return "spun up"
     return None
 
 
@@ -79,3 +71,24 @@ def test_stability_quick_matrix(tmp_path):
         assert (tmp_path / f"stability_{kind}.png").stat().st_size > 10_000
     failed = check_report(report)
     assert out.returncode == (1 if failed else 0)
+
+
+def test_observation_window_after_release():
+    """A cell left inverted is observed on for up to OBSERVE_TRANSITS shear-wave transits
+    after the release (capped): 0.28 s per transit for the 1 kPa, nu = 0 box."""
+    from mdss_ros.verify import stability_study as st
+    assert st.transit_time(1e3, 0.0) == pytest.approx(0.2 / (500.0 / 1000.0) ** 0.5)
+    steps = st.STEPS
+    after = steps - steps // 2
+    cell = dict(young=1e3, poisson=0.0, dt=1.0 / 30.0)
+    assert st.extra_steps(cell, steps) == int(-(-4 * st.transit_time(1e3, 0.0) * 30 // 1)) - after == 22
+    assert st.extra_steps(dict(cell, dt=1.0 / 90.0), steps) == 102 - after
+    assert st.extra_steps(dict(cell, dt=1e-4), steps) == st.OBSERVE_MAX_STEPS        # capped
+    assert st.extra_steps(dict(cell, young=1e11), steps) == 0                         # stiff: no extension
+
+
+def test_a_stable_cell_runs_its_steps_only():
+    from mdss_ros.verify.stability_study import BASE, run_cell
+    r = run_cell("full", "corotated", BASE, 8)
+    assert r["status"] == "stable" and r["steps_run"] == 8 and r["inverted_release"] == 0
+    assert r["inverted_end"] == 0 and not r["why"]

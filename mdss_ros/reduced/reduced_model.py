@@ -1263,6 +1263,31 @@ class ReducedModel:
         finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 
+    def mean_motion(self):
+        """(total mass M, mass-centre velocity V (3,)) for the guard's energy projection;
+        V = 0 for a body held by pins (its momentum is not conserved, scale all motion)."""
+        gm = self._global_motion()
+        m = sum(dom.total_mass for dom in self.subspace) + float(self.vertex_mass[self.is_full_vertex].sum())
+        return m, (gm[1].copy() if gm is not None else np.zeros(3))
+
+    def scale_relative_motion(self, s, V):
+        """Energy projection (guard.project_energy): v <- V + s (v - V) on frames and
+        full-space vertices, w <- s w, qd <- s qd. The kinetic energy is 1/2 M |V|^2 +
+        E_rel with E_rel quadratic in (v - V, w, qd) and no cross term (V is the mass-weighted
+        mean, the basis carries no linear momentum), so it becomes 1/2 M |V|^2 + s^2 E_rel;
+        linear momentum is kept, angular momentum about the mass centre scales by s.
+        Positions are untouched (the cached start evaluation stays valid)."""
+        fr = self.frames
+        mv = self.movable
+        fr.v = np.where(mv[:, None], V + s * (fr.v - V), fr.v)
+        fr.w = np.where(mv[:, None], s * fr.w, fr.w)
+        # The Euler force reads (w - w_prev) / dt: scale both so the projection is no jolt.
+        fr.w_prev = np.where(mv[:, None], s * fr.w_prev, fr.w_prev)
+        self.qd = [s * qd for qd in self.qd]
+        if self.F:
+            self.v_full = np.where(self.is_full_vertex[:, None], V + s * (self.v_full - V), 0.0)
+            self.v_full[self.body.pinned] = 0.0
+
     def _guard_radii(self, k):
         """(largest rest radius, largest per-vertex basis norm) of subspace domain k, cached."""
         if not hasattr(self, "_guard_rs"):
