@@ -28,11 +28,17 @@ import numpy as np
 MAGIC = "mdss_ros precompute v1"
 # Source files each stage's result depends on: editing one rebuilds that stage (and the
 # stages after it, whose keys include its key), not the ones before.
+# "file.py::Class.method" names one function of a file that also does other things (the
+# reduced model builds its stages in a few methods; its step code is not part of them).
 STAGE_CODE = {
     "bases": ["reduced/partition.py", "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py",
-              "fem/material_kernels.py", "fem/elements.py", "fem/assembly.py", "precompute.py"],
+              "fem/material_kernels.py", "fem/elements.py", "fem/assembly.py", "precompute.py",
+              "reduced/reduced_model.py::ReducedModel.__init__"],
     "cubature": ["reduced/training.py", "reduced/cubature.py", "reduced/sampled_forces.py",
-                 "fem/backward_euler.py", "precompute.py"],
+                 "fem/backward_euler.py", "precompute.py",
+                 "reduced/reduced_model.py::ReducedModel._build_cubature",
+                 "reduced/reduced_model.py::ReducedModel._restore_cubature",
+                 "reduced/reduced_model.py::ReducedModel._build_interface_cubature"],
 }
 
 
@@ -40,17 +46,24 @@ def code_hash(stage="bases"):
     """SHA-256 (16 hex) of the source files a stage of the precompute depends on."""
     h = hashlib.sha256()
     root = Path(__file__).resolve().parent
-    for rel in STAGE_CODE[stage]:
+    for item in STAGE_CODE[stage]:
+        rel, _, name = item.partition("::")
         p = root / rel
-        h.update(rel.encode())
-        h.update(code_fingerprint(p.read_text()) if p.exists() else b"missing")
+        h.update(item.encode())
+        h.update(code_fingerprint(p.read_text(), name or None) if p.exists() else b"missing")
     return h.hexdigest()[:16]
 
 
-def code_fingerprint(source):
+def code_fingerprint(source, name=None):
     """The syntax tree of Python source without docstrings (comments are not in it), as
-    bytes: a comment or docstring edit keeps it, any code edit changes it."""
+    bytes: a comment or docstring edit keeps it, any code edit changes it. name: a dotted
+    path ("Class.method") to fingerprint one definition only (b"missing" if absent)."""
     tree = ast.parse(source)
+    for part in (name.split(".") if name else []):
+        tree = next((n for n in getattr(tree, "body", []) if isinstance(n, (ast.ClassDef, ast.FunctionDef))
+                     and n.name == part), None)
+        if tree is None:
+            return b"missing"
     for node in ast.walk(tree):
         if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
             first = node.body[0]

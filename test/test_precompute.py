@@ -101,3 +101,21 @@ def test_code_fingerprint_ignores_comments_and_docstrings_not_code():
     assert code_fingerprint(a) == code_fingerprint(b)
     assert code_fingerprint(a) != code_fingerprint(c)
     assert code_fingerprint(a) != code_fingerprint(d)
+
+
+def test_code_fingerprint_of_one_method():
+    from mdss_ros.precompute import STAGE_CODE, code_fingerprint, code_hash
+    src = "class A:\n    def f(self):\n        return 1\n\n    def g(self):\n        return 2\n"
+    changed_g = src.replace("return 2", "return 3")
+    assert code_fingerprint(src, "A.f") == code_fingerprint(changed_g, "A.f")
+    assert code_fingerprint(src, "A.g") != code_fingerprint(changed_g, "A.g")
+    assert code_fingerprint(src, "A.h") == b"missing"
+    # Every method the stages name exists (a rename must not silently drop it from the hash).
+    from pathlib import Path
+    import mdss_ros
+    root = Path(mdss_ros.__file__).parent
+    for items in STAGE_CODE.values():
+        for item in items:
+            rel, _, name = item.partition("::")
+            assert code_fingerprint((root / rel).read_text(), name or None) != b"missing", item
+    assert code_hash("bases") != code_hash("cubature")
