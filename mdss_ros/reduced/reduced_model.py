@@ -992,10 +992,18 @@ class ReducedModel:
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
         from ..contact.unilateral import contact_correction
-        _, C, phi, _, _ = rows
+        verts, C, phi, _, which = rows
+        # The LCP's first guess: the rows active in the last Newton iteration or step
+        # (a resting or pressed body keeps most of its contacts; only the pivots change).
+        if getattr(self, "_contact_rows_seen", None) is rows:          # a later Newton iteration
+            hint = self._contact_lam > 0
+        else:
+            keys = which * len(self.vertex_domain) + verts
+            hint = np.isin(keys, getattr(self, "_contact_active_keys", np.zeros(0, np.int64)))
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
-        lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9)
-        self._contact_lam = lam
+        lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        self._contact_lam, self._contact_rows_seen = lam, rows
+        self._contact_active_keys = which[lam > 0] * len(self.vertex_domain) + verts[lam > 0]
         return dQ + corr, lam
 
     def step(self, f_ext, gravity=None, contact=None):

@@ -1,0 +1,90 @@
+"""The contact LCP solver at the sizes scenes give it: many rows, rank-deficient S
+(reduced bodies), warm starts. Reference: the same LCP as a non-negative least-squares
+problem (S = L L^T: min |L^T lam + L^-1 q| over lam >= 0), solved by scipy."""
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from scipy.optimize import nnls
+
+from mdss_ros.contact.unilateral import contact_correction, solve_lcp
+
+
+def _reference(S, q):
+    L = np.linalg.cholesky(S)
+    return nnls(L.T, -sla.solve_triangular(L, q, lower=True), maxiter=50 * len(q))[0]
+
+
+def _lcp_error(S, q, lam):
+    w = S @ lam + q
+    return max(-lam.min(), -w.min(), abs(lam @ w) / max(np.abs(q).max(), 1e-300))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_block_pivoting_matches_nnls_on_large_problems(seed):
+    rng = np.random.default_rng(seed)
+    m = 120
+    B = rng.normal(size=(m, m))
+    S = B @ B.T / m + 0.05 * np.eye(m)
+    q = rng.normal(size=m)
+    lam, info = solve_lcp(S, q)
+    assert not info.get("unconverged") and 0 < info["active"] < m
+    assert _lcp_error(S, q, lam) < 1e-9
+    np.testing.assert_allclose(lam, _reference(S, q), atol=1e-8)
+
+
+def test_rank_deficient_rows_with_regularisation_match_the_regularised_reference():
+    """A reduced body: 300 contact rows through 40 DOFs make S = C A^-1 C^T singular; the
+    regularised LCP is unique and the solver finds it (many active rows at once)."""
+    rng = np.random.default_rng(7)
+    n, m = 40, 300
+    C = rng.normal(size=(m, n))
+    G = rng.normal(size=(n, n))
+    A = G @ G.T + n * np.eye(n)
+    S = C @ np.linalg.solve(A, C.T)
+    # A feasible problem, as contact gives: the correction -u meets every row (gap s >= 0).
+    q = C @ rng.normal(size=n) + rng.uniform(0.0, 0.5, size=m)
+    eps = 1e-9
+    lam, info = solve_lcp(S, q, regularize=eps)
+    S_reg = S + eps * np.mean(np.diag(S)) * np.eye(m)
+    assert not info.get("unconverged")
+    assert info["active"] > n // 2                # many rows, near the rank of S, active at once
+    assert _lcp_error(S_reg, q, lam) < 1e-8
+    np.testing.assert_allclose(S @ lam, S @ _reference(S_reg, q), atol=1e-6 * np.abs(S @ lam).max())
+
+
+@pytest.mark.parametrize("guess", ["empty", "all", "random", "exact"])
+def test_any_first_guess_gives_the_same_solution(guess):
+    rng = np.random.default_rng(11)
+    m = 80
+    B = rng.normal(size=(m, m))
+    S = B @ B.T / m + 0.1 * np.eye(m)
+    q = rng.normal(size=m)
+    ref, _ = solve_lcp(S, q)
+    first = {"empty": np.zeros(m, bool), "all": np.ones(m, bool), "random": rng.random(m) < 0.5,
+             "exact": ref > 0}[guess]
+    lam, info = solve_lcp(S, q, active=first)
+    np.testing.assert_allclose(lam, ref, atol=1e-10)
+    if guess == "exact":
+        assert info["iterations"] == 1            # a right guess costs one solve
+
+
+def test_hinted_working_set_gives_the_same_correction():
+    """contact_correction with a hint (last step's contacts) equals the one without."""
+    rng = np.random.default_rng(5)
+    n, m = 60, 50
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    C = np.zeros((m, n))
+    for i in range(m):
+        C[i, rng.choice(n, 3, replace=False)] = rng.normal(size=3)
+    g = rng.normal(size=m) + 0.3
+
+    def resolve(rhs):
+        return np.linalg.solve(A, rhs)
+
+    lam, corr, info = contact_correction(resolve, C, g)
+    for hint in (lam > 0, rng.random(m) < 0.3, np.ones(m, bool)):
+        lam_h, corr_h, info_h = contact_correction(resolve, C, g, hint=hint)
+        np.testing.assert_allclose(lam_h, lam, atol=1e-10)
+        np.testing.assert_allclose(corr_h, corr, atol=1e-10)
+    assert contact_correction(resolve, C, g, hint=lam > 0)[2]["rounds"] == 1
