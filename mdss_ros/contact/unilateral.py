@@ -125,18 +125,20 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     The step dv of A dv = b is corrected to dv + Y lam, Y = A^-1 C^T, with lam >= 0,
     w = C Y lam + g >= 0 and lam . w = 0 (g = C dv + phi: the rows' gap after the
     unconstrained step). Only the rows that can matter get a solve: the working set starts
-    with the rows the unconstrained step violates, the LCP (solve_lcp) is solved on it,
+    with the rows the unconstrained step violates (or the hint), the LCP (solve_lcp) is solved on it,
     and rows outside it that the corrected step violates join it, until none does. A row
     left out has lam = 0 and w >= 0, so the answer is the LCP on all rows, exactly; the cost
     is one solve per working-set row instead of one per candidate (a pressed sphere has
     most candidates near, not in, the contact).
 
-    regularize: the diagonal shift of solve_lcp as a fraction of the mean diagonal of S
-    over the rows the unconstrained step violates; the shift is fixed from there on, so
-    the answer does not depend on which other rows the working set takes in.
     hint: optional (m,) bool, rows expected active (the last step's or Newton iteration's
-    contacts): they join the first working set and are the LCP's first guess, which saves
-    pivots when the contact set changes little; the answer does not depend on it.
+    contacts). When given, the working set starts with these rows alone (the LCP's first
+    guess too): a body resting or pressed keeps most of its contacts, and the many rows
+    the unconstrained step violates are mostly pushed out by the few that carry the load,
+    so this costs a few solves instead of one per violated row. The answer does not
+    depend on it (up to the regularisation below).
+    regularize: the diagonal shift of solve_lcp as a fraction of the mean diagonal of S
+    over the first working set, then fixed for the following rounds.
 
     resolve(B) solves A X = B for B (n, k); C (m, n) dense or scipy sparse; g (m,).
     Returns (lam (m,), correction (n,) = Y lam, info).
@@ -147,16 +149,13 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     violated = g < -tol * scale
     if not violated.any():
         return lam, np.zeros(n), {"rows": m, "working_set": 0, "rounds": 0, "active": 0}
-    hint = violated if hint is None else np.asarray(hint, dtype=bool)
-    work = np.flatnonzero(violated | hint)
+    hint = None if hint is None or not np.any(hint) else np.asarray(hint, dtype=bool)
+    work = np.flatnonzero(violated if hint is None else hint)
     dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
     Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(work)))).reshape(n, -1)
     S = np.asarray(C[work] @ Y)
-    shift = 0.0
-    if regularize > 0.0:
-        first = violated[work]
-        shift = regularize * max(float(np.mean(np.diag(S)[first])), 1e-300)
-    guess = hint[work]
+    shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
+    guess = np.ones(work.size, dtype=bool)
     info = {}
     for rounds in range(1, max_rounds + 1):
         lam_w, info = solve_lcp(S, g[work], tol=tol, shift=shift, active=guess)
@@ -169,8 +168,8 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
             break
         # Rows the corrected step violates join: their solves and S's new rows and columns.
         Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(viol)))).reshape(n, -1)
-        cross = np.asarray(C[work] @ Y_new)
-        S = np.block([[S, cross], [cross.T, np.asarray(C[viol] @ Y_new)]])
+        S = np.block([[S, np.asarray(C[work] @ Y_new)],
+                      [np.asarray(C[viol] @ Y), np.asarray(C[viol] @ Y_new)]])
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
         guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])
