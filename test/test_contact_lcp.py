@@ -88,3 +88,45 @@ def test_hinted_working_set_gives_the_same_correction():
         np.testing.assert_allclose(lam_h, lam, atol=1e-10)
         np.testing.assert_allclose(corr_h, corr, atol=1e-10)
     assert contact_correction(resolve, C, g, hint=lam > 0)[2]["rounds"] == 1
+
+
+def _faces_by_brute_force(col, positions, triangles, margin, corner=1e-3):
+    """find_triangle_contacts' answer without any cull: every triangle tested exactly."""
+    from mdss_ros.contact.unilateral import _axis, segment_triangle_closest
+    a, b = _axis(col)
+    _, d2, bary = segment_triangle_closest(a, b, positions[triangles])
+    dist = np.sqrt(d2)
+    return np.flatnonzero((dist < col.radius + margin) & (bary.max(axis=1) < 1.0 - corner) & (dist > 1e-12))
+
+
+@pytest.mark.parametrize("shape", ["sphere", "capsule"])
+def test_triangle_cull_keeps_every_face_the_exact_test_finds(shape):
+    """The vertex-then-bounding-sphere cull of find_triangle_contacts drops no touching face:
+    a jittered grid of small faces plus one large face whose corners are all far from the
+    collider while its interior touches it."""
+    from mdss_ros.contact.colliders import make_collider
+    from mdss_ros.contact.unilateral import find_triangle_contacts
+    rng = np.random.default_rng(2)
+    n = 12
+    gx, gy = np.meshgrid(np.linspace(-0.3, 0.3, n), np.linspace(-0.3, 0.3, n), indexing="ij")
+    pos = np.stack([gx.ravel(), gy.ravel(), 0.01 * rng.normal(size=n * n)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tris = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    big = np.array([[2.0, -1.0, 0.5], [-1.0, 2.0, 0.5], [-1.0, -1.0, 0.5]])   # far corners, plane z = 0.5
+    pos = np.concatenate([pos, big])
+    tris = np.concatenate([tris, [[n * n, n * n + 1, n * n + 2]]])
+    spec = {"shape": shape, "radius": 0.05, "position": [0.0, 0.0, 0.0]}
+    if shape == "capsule":
+        spec["half_height"] = 0.1
+    found = 0
+    tip = 0.1 if shape == "capsule" else 0.0             # the capsule's axis is along z
+    for centre in ([0.0, 0.0, 0.45 - tip], [0.01, 0.02, 0.04], [0.1, -0.05, 0.03], [0.2, 0.2, 0.2]):
+        col = make_collider("c", dict(spec, position=centre))
+        t_idx = find_triangle_contacts([col], pos, tris, margin=0.02)[0]
+        ref = _faces_by_brute_force(col, pos, tris, margin=0.02)
+        np.testing.assert_array_equal(np.sort(t_idx), ref)
+        found += len(ref)
+        if centre[2] == 0.45 - tip:
+            assert len(tris) - 1 in ref            # the large face is found
+    assert found > 3

@@ -300,19 +300,33 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     corner are left to the vertex contacts.
     """
     out = [], [], [], [], []
-    tri_pos = positions[triangles]
-    centroid = tri_pos.mean(axis=1)
-    reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
-    for c_idx, col in enumerate(colliders):
-        if col.shape not in ("sphere", "capsule") or not getattr(col, "face_contacts", True):
-            continue
+    round_ = [(c_idx, col) for c_idx, col in enumerate(colliders)
+              if col.shape in ("sphere", "capsule") and getattr(col, "face_contacts", True)]
+    if not round_:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    # Cull by vertices first (the surface has half as many vertices as triangles): a point
+    # of a triangle lies within its longest edge of each corner, so a triangle whose
+    # corners are all farther than radius + margin + the longest surface edge from the
+    # collider cannot touch it.
+    corners = [positions[triangles[:, k]] for k in range(3)]
+    longest = np.sqrt(max(float(np.einsum("ij,ij->i", e, e).max()) for e in
+                          (corners[1] - corners[0], corners[2] - corners[1], corners[0] - corners[2])))
+    for c_idx, col in round_:
         a, b = _axis(col)
-        # Cheap cull by the triangles' bounding spheres.
-        gap = np.linalg.norm(centroid - closest_points_on_segment(a, b, centroid), axis=1)
-        near = np.flatnonzero(gap < col.radius + margin + reach)
+        d_v = np.linalg.norm(positions - closest_points_on_segment(a, b, positions), axis=1)
+        near = np.flatnonzero(d_v[triangles].min(axis=1) < col.radius + margin + longest)
         if near.size == 0:
             continue
-        t = tri_pos[near]
+        # Then by the triangles' bounding spheres.
+        tri_pos = positions[triangles[near]]
+        centroid = tri_pos.mean(axis=1)
+        reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
+        gap = np.linalg.norm(centroid - closest_points_on_segment(a, b, centroid), axis=1)
+        keep_sphere = gap < col.radius + margin + reach
+        near, tri_pos = near[keep_sphere], tri_pos[keep_sphere]
+        if near.size == 0:
+            continue
+        t = tri_pos
         centre, d2, bary = segment_triangle_closest(a, b, t)
         dist = np.sqrt(d2)
         keep = (dist < col.radius + margin) & (bary.max(axis=1) < 1.0 - corner) & (dist > 1e-12)
