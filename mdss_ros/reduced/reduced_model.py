@@ -929,6 +929,8 @@ class ReducedModel:
         # Sphere-face contacts enter as weighted copies of their three corners' rows.
         weights = np.ones(len(rows))
         group = np.arange(len(rows))
+        n_all = len(self.vertex_domain)
+        key = ids[rows] + n_all * which                 # a row's identity from step to step
         if contact.get("triangles") is not None:
             t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x,
                                                                       contact["triangles"], contact["margin"])
@@ -940,11 +942,16 @@ class ReducedModel:
                 which = np.concatenate([which, np.repeat(t_which, 3)])
                 phi = np.concatenate([phi, t_phi])
                 normals = np.concatenate([normals, np.repeat(t_n, 3, axis=0)])
+                # Face keys follow every vertex key: n_all n_col + t n_col + c for triangle t, collider c.
+                n_col = len(contact["colliders"])
+                key = np.concatenate([key, n_all * n_col + t_idx * n_col + t_which])
         if len(rows) == 0:
             return None
         verts = ids[rows]
         xv = x[rows]
-        Cv = np.zeros((len(verts), self.n_gen))                 # one row per (contact, corner)
+        # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        blocks = []                                          # (corner rows, columns, values (s, c))
         dom_of = self.vertex_domain[verts]
         for i, (kind, k) in enumerate(self.domain_kind):
             sel = np.flatnonzero(dom_of == i)
@@ -956,28 +963,38 @@ class ReducedModel:
                 o = self.sub_offsets[k]
                 loc = self.vertex_local[verts[sel]]
                 # n^T R U_l = (R^T n)^T U_l: one contraction over the (s, 3, r) rows of U.
-                Cv[sel, o:o + dom.r] = np.einsum("li,lib->lb", n @ self.frames.R[k], dom.U3[loc])
+                blocks.append((sel, o + np.arange(dom.r), np.einsum("li,lib->lb", n @ self.frames.R[k], dom.U3[loc])))
                 if dom.movable:
-                    Cv[sel, o + dom.r:o + dom.r + 3] = n
-                    Cv[sel, o + dom.r + 3:o + dom.r + 6] = np.cross(xv[sel] - self.frames.c[k], n)
+                    blocks.append((sel, o + dom.r + np.arange(6),
+                                   np.hstack([n, np.cross(xv[sel] - self.frames.c[k], n)])))
             else:
                 dofs = self.full_dof_of_vertex[verts[sel]]
                 ok = dofs >= 0
-                rr = sel[ok]
-                cols = self.S + 3 * dofs[ok, None] + np.arange(3)
-                Cv[rr[:, None], cols] = n[ok]
-        # group is non-decreasing (vertex rows, then three corners per face): sum by runs.
-        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-        C = Cv if len(starts) == len(group) else np.add.reduceat(Cv, starts, axis=0)
-        C *= self.dt
+                blocks.append((sel[ok], self.S + 3 * dofs[ok, None] + np.arange(3), n[ok]))
+        if self.F:
+            # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
+            # (duplicates, a face's corners, are summed on construction).
+            row_of = np.searchsorted(starts, np.arange(len(group)), side="right") - 1
+            r_idx = np.concatenate([np.repeat(row_of[sel], vals.shape[1]) for sel, _, vals in blocks])
+            c_idx = np.concatenate([np.broadcast_to(cols, vals.shape).ravel() for _, cols, vals in blocks])
+            values = np.concatenate([vals.ravel() for _, _, vals in blocks])
+            C = sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(len(starts), self.n_gen))
+            norms = np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel())
+        else:
+            Cv = np.zeros((len(verts), self.n_gen))             # one row per (contact, corner)
+            for sel, cols, vals in blocks:
+                Cv[sel[:, None], cols] = vals
+            C = Cv if len(starts) == len(group) else np.add.reduceat(Cv, starts, axis=0)
+            C *= self.dt
+            norms = np.linalg.norm(C, axis=1)
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
-        norms = np.linalg.norm(C, axis=1)
         movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
         if not movable.all():
             verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
                                                  which[movable], xv[movable])
+            key = key[movable]
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
@@ -986,23 +1003,28 @@ class ReducedModel:
             Cg, Vg, Wg = gm[:3]
             self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
             phi_eff += self._contact_rigid
+        self._contact_row_keys = key
         return verts, C, phi_eff, normals, which
 
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
         from ..contact.unilateral import contact_correction
         verts, C, phi, _, which = rows
-        # The LCP's first guess: the rows active in the last Newton iteration or step
-        # (a resting or pressed body keeps most of its contacts; only the pivots change).
-        if getattr(self, "_contact_rows_seen", None) is rows:          # a later Newton iteration
+        # The LCP's first guess: the rows active in the last Newton iteration, or in the last
+        # two steps (a resting or pressed body keeps most of its contacts, and a coarse patch
+        # under a held collider can swap its load between vertex and face rows every other
+        # step). It saves solves and pivots only; the answer does not depend on it.
+        keys = self._contact_row_keys
+        history = getattr(self, "_contact_history", [])        # active keys per step, newest last
+        same_step = getattr(self, "_contact_rows_seen", None) is rows
+        if same_step:
             hint = self._contact_lam > 0
         else:
-            keys = which * len(self.vertex_domain) + verts
-            hint = np.isin(keys, getattr(self, "_contact_active_keys", np.zeros(0, np.int64)))
+            hint = np.isin(keys, np.concatenate(history)) if history else None
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
         lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[lam > 0]]
         self._contact_lam, self._contact_rows_seen = lam, rows
-        self._contact_active_keys = which[lam > 0] * len(self.vertex_domain) + verts[lam > 0]
         return dQ + corr, lam
 
     def step(self, f_ext, gravity=None, contact=None):
