@@ -52,7 +52,7 @@ def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0, active=None,
     active = (q < 0.0) if active is None else np.asarray(active, dtype=bool).copy()
     scale = max(float(np.abs(q).max()), 1e-300)
     max_iterations = max_iterations or 10 * m + 10
-    best, chances = m + 1, 3
+    best, best_set, chances = m + 1, active.copy(), 3
     for it in range(max_iterations):
         lam = _solve_on(S, q, active)
         neg = active & (lam < -tol * scale)
@@ -61,13 +61,13 @@ def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0, active=None,
         if n_broken == 0:
             return np.maximum(lam, 0.0), {"iterations": it + 1, "active": int(active.sum())}
         if n_broken < best:
-            best, chances = n_broken, 3
+            best, best_set, chances = n_broken, active.copy(), 3
         else:
             chances -= 1
         if chances == 0:
             break
         active ^= neg | viol
-    return _lawson_hanson(S, q, tol * scale, max_iterations, it + 1)
+    return _lawson_hanson(S, q, tol * scale, max_iterations, it + 1, best_set)
 
 
 def _solve_on(S, q, active):
@@ -83,13 +83,23 @@ def _solve_on(S, q, active):
     return lam
 
 
-def _lawson_hanson(S, q, tol, max_iterations, done):
-    """solve_lcp's second gear from lambda = 0; `done` iterations already spent."""
+def _lawson_hanson(S, q, tol, max_iterations, done, start):
+    """solve_lcp's second gear; `done` iterations already spent. It starts from the best
+    set of the first gear, less the rows whose multipliers come out non-positive (dropped
+    until none does), so lambda >= 0 from the start (Bro and de Jong's warm start)."""
     m = len(q)
     lam = np.zeros(m)
-    passive = np.zeros(m, dtype=bool)
-    blocked = np.zeros(m, dtype=bool)           # rows whose entry failed in round-off
+    passive = start.copy()
     it = done
+    while passive.any() and it < max_iterations:
+        it += 1
+        z = _solve_on(S, q, passive)
+        bad = passive & (z <= 0.0)
+        if not bad.any():
+            lam = z
+            break
+        passive &= ~bad
+    blocked = np.zeros(m, dtype=bool)           # rows whose entry failed in round-off
     while it < max_iterations:
         w = S @ lam + q
         cand = ~passive & ~blocked & (w < -tol)
