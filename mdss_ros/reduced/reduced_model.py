@@ -1022,7 +1022,8 @@ class ReducedModel:
         else:
             hint = np.isin(keys, np.concatenate(history)) if history else None
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
-        lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        self._contact_info = info
         self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[lam > 0]]
         self._contact_lam, self._contact_rows_seen = lam, rows
         return dQ + corr, lam
@@ -1160,6 +1161,9 @@ class ReducedModel:
                       "angular_momentum_correction": self._dW,
                       "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
+        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
+            self.stats.update(contact_rows=self._contact_info["rows"],
+                              contact_working_set=self._contact_info["working_set"])
         self.timing = {}
         return self.stats
 
