@@ -358,6 +358,9 @@ class ReducedModel:
         self.last = {"elastic": 0.0}
         self.stats = {}
         self.contact = None
+        # The contact LCP's warm start (_contact_solve): part of the state, so a rolled
+        # back or replayed step repeats bit for bit.
+        self._contact_history, self._contact_rows_seen = [], None
 
     def get_state(self):
         """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
@@ -365,7 +368,8 @@ class ReducedModel:
         set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
         return {"q": [qi.copy() for qi in self.q], "qd": [qi.copy() for qi in self.qd],
                 "frames": self.frames.copy(), "x_full": self.x_full.copy(), "v_full": self.v_full.copy(),
-                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats)}
+                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats),
+                "contact_history": list(self._contact_history)}
 
     def set_state(self, state):
         """Restore a get_state() snapshot."""
@@ -374,6 +378,7 @@ class ReducedModel:
         self.frames = state["frames"].copy()
         self.x_full, self.v_full = state["x_full"].copy(), state["v_full"].copy()
         self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
+        self._contact_history, self._contact_rows_seen = list(state.get("contact_history", [])), None
 
     @property
     def n_dofs(self):
@@ -1015,8 +1020,8 @@ class ReducedModel:
         # under a held collider can swap its load between vertex and face rows every other
         # step). It saves solves and pivots only; the answer does not depend on it.
         keys = self._contact_row_keys
-        history = getattr(self, "_contact_history", [])        # active keys per step, newest last
-        same_step = getattr(self, "_contact_rows_seen", None) is rows
+        history = self._contact_history                          # active keys per step, newest last
+        same_step = self._contact_rows_seen is rows
         if same_step:
             hint = self._contact_lam > 0
         else:
