@@ -20,59 +20,135 @@ import numpy as np
 import scipy.linalg as sla
 
 
-def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0):
+def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0, active=None, shift=0.0):
     """lambda >= 0 with w = S lambda + q >= 0 and lambda . w = 0, for S (m, m) SPD.
 
-    Active-set (block principal pivoting, one index at a time); returns (lambda, info).
-    regularize > 0 adds that fraction of mean(diag S) to the diagonal: for reduced bodies
-    with more contact rows than DOFs, where S is singular (the total force is determined
-    but not its split), it picks the least-norm split at a constraint error of that order.
+    The minimiser of 1/2 lambda.S lambda + q.lambda over lambda >= 0, by an active-set
+    method in two gears. First block principal pivoting (Judice and Pires 1994): guess the
+    active set A, solve S_AA lambda_A = -q_A, and swap every index that breaks a sign
+    (lambda_i < 0 in A, w_i < 0 outside) at once; a good guess (the previous step's
+    contacts) needs one or two solves. Block swaps can cycle when rows are dependent (a
+    reduced body has more contact rows than DOFs), so after three swaps that do not lower
+    the number of broken indices it goes on with Lawson and Hanson's method (NNLS,
+    1974): add the most violated row, and where the new solution turns a multiplier
+    negative, stop on the segment where it reaches zero and drop it. That lowers the
+    objective at every step, so it cannot cycle. The LCP has one solution; either gear
+    ends there.
+
+    active: optional (m,) bool, the first guess (default: the rows with q < 0).
+    Returns (lambda, info). regularize > 0 adds that fraction of mean(diag S) to the
+    diagonal: for reduced bodies with more contact rows than DOFs, where S is singular (the
+    total force is determined but not its split), it picks the least-norm split at a
+    constraint error of that order; shift > 0 adds that absolute value instead.
     """
     m = len(q)
     lam = np.zeros(m)
     if m == 0:
         return lam, {"iterations": 0, "active": 0}
     if regularize > 0.0:
-        S = S + regularize * max(float(np.mean(np.diag(S))), 1e-300) * np.eye(m)
-    # Start from the constraints the unconstrained step violates: usually the final set.
-    active = q < 0.0
+        shift = regularize * max(float(np.mean(np.diag(S))), 1e-300)
+    if shift > 0.0:
+        S = S + shift * np.eye(m)
+    active = (q < 0.0) if active is None else np.asarray(active, dtype=bool).copy()
     scale = max(float(np.abs(q).max()), 1e-300)
     max_iterations = max_iterations or 10 * m + 10
+    best, best_set, chances = m + 1, active.copy(), 3
     for it in range(max_iterations):
-        lam[:] = 0.0
-        if active.any():
-            idx = np.flatnonzero(active)
-            Sa = S[np.ix_(idx, idx)]
-            try:
-                lam[idx] = sla.solve(Sa, -q[idx], assume_a="pos", check_finite=False)
-            except (np.linalg.LinAlgError, ValueError):
-                lam[idx] = np.linalg.lstsq(Sa, -q[idx], rcond=None)[0]
+        lam = _solve_on(S, q, active)
         neg = active & (lam < -tol * scale)
-        if neg.any():
-            # Drop the most negative multiplier (a contact that pulls).
-            k = np.flatnonzero(neg)[np.argmin(lam[neg])]
-            active[k] = False
-            continue
-        w = S @ lam + q
-        viol = (~active) & (w < -tol * scale)
-        if not viol.any():
+        viol = ~active & (S @ lam + q < -tol * scale)
+        n_broken = int(neg.sum() + viol.sum())
+        if n_broken == 0:
             return np.maximum(lam, 0.0), {"iterations": it + 1, "active": int(active.sum())}
-        k = np.flatnonzero(viol)[np.argmin(w[viol])]
-        active[k] = True
-    return np.maximum(lam, 0.0), {"iterations": max_iterations, "active": int(active.sum()), "unconverged": True}
+        if n_broken < best:
+            best, best_set, chances = n_broken, active.copy(), 3
+        else:
+            chances -= 1
+        if chances == 0:
+            break
+        active ^= neg | viol
+    return _lawson_hanson(S, q, tol * scale, max_iterations, it + 1, best_set)
 
 
-def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50):
+def _solve_on(S, q, active):
+    """lambda (m,): S_AA lambda_A = -q_A on the active set, zero elsewhere."""
+    lam = np.zeros(len(q))
+    idx = np.flatnonzero(active)
+    if idx.size:
+        Sa = S[np.ix_(idx, idx)]
+        try:
+            lam[idx] = sla.solve(Sa, -q[idx], assume_a="pos", check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            lam[idx] = np.linalg.lstsq(Sa, -q[idx], rcond=None)[0]
+    return lam
+
+
+def _lawson_hanson(S, q, tol, max_iterations, done, start):
+    """solve_lcp's second gear; `done` iterations already spent. It starts from the best
+    set of the first gear, less the rows whose multipliers come out non-positive (dropped
+    until none does), so lambda >= 0 from the start (Bro and de Jong's warm start)."""
+    m = len(q)
+    lam = np.zeros(m)
+    passive = start.copy()
+    it = done
+    while passive.any() and it < max_iterations:
+        it += 1
+        z = _solve_on(S, q, passive)
+        bad = passive & (z <= 0.0)
+        if not bad.any():
+            lam = z
+            break
+        passive &= ~bad
+    blocked = np.zeros(m, dtype=bool)           # rows whose entry failed in round-off
+    while it < max_iterations:
+        w = S @ lam + q
+        cand = ~passive & ~blocked & (w < -tol)
+        if not cand.any():
+            return lam, {"iterations": it, "active": int(passive.sum()),
+                         "unconverged": bool((~passive & (w < -tol)).any())}
+        j = np.flatnonzero(cand)[np.argmin(w[cand])]
+        passive[j] = True
+        while it < max_iterations:
+            it += 1
+            z = _solve_on(S, q, passive)
+            bad = passive & (z <= 0.0)
+            if not bad.any():
+                lam = z
+                blocked[:] = False
+                break
+            if bad[j] and lam[j] == 0.0:
+                # The row just added cannot enter (dependent on the set in round-off).
+                passive[j] = False
+                blocked[j] = True
+                break
+            # Move towards z until the first multiplier reaches zero, and drop it.
+            alpha = np.min(lam[bad] / (lam[bad] - z[bad]))
+            lam = lam + alpha * (z - lam)
+            passive &= lam > 0.0
+            lam[~passive] = 0.0
+    return lam, {"iterations": it, "active": int(passive.sum()), "unconverged": True}
+
+
+def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None):
     """Multipliers and velocity correction of one linear solve with contact.
 
     The step dv of A dv = b is corrected to dv + Y lam, Y = A^-1 C^T, with lam >= 0,
     w = C Y lam + g >= 0 and lam . w = 0 (g = C dv + phi: the rows' gap after the
     unconstrained step). Only the rows that can matter get a solve: the working set starts
-    with the rows the unconstrained step violates, the LCP (solve_lcp) is solved on it,
+    with the rows the unconstrained step violates (or the hint), the LCP (solve_lcp) is solved on it,
     and rows outside it that the corrected step violates join it, until none does. A row
     left out has lam = 0 and w >= 0, so the answer is the LCP on all rows, exactly; the cost
     is one solve per working-set row instead of one per candidate (a pressed sphere has
     most candidates near, not in, the contact).
+
+    hint: optional (m,) bool, rows expected active (the last step's or Newton iteration's
+    contacts). When given, the working set starts with these rows alone (the LCP's first
+    guess too): a body resting or pressed keeps most of its contacts, and the many rows
+    the unconstrained step violates are mostly pushed out by the few that carry the load,
+    so this costs a few solves instead of one per violated row. The answer does not
+    depend on it (up to the regularisation below).
+    regularize: the diagonal shift of solve_lcp as a fraction of the mean diagonal of S
+    over the first working set, then fixed for the following rounds.
 
     resolve(B) solves A X = B for B (n, k); C (m, n) dense or scipy sparse; g (m,).
     Returns (lam (m,), correction (n,) = Y lam, info).
@@ -80,18 +156,19 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50):
     m, n = C.shape
     lam = np.zeros(m)
     scale = max(float(np.abs(g).max()), 1e-300) if m else 1.0
-    work = np.flatnonzero(g < -tol * scale)
-    if work.size == 0:
+    violated = g < -tol * scale
+    if not violated.any():
         return lam, np.zeros(n), {"rows": m, "working_set": 0, "rounds": 0, "active": 0}
+    hint = None if hint is None or not np.any(hint) else np.asarray(hint, dtype=bool)
+    work = np.flatnonzero(violated if hint is None else hint)
     dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
-    Y = np.zeros((n, 0))
-    lam_w = np.zeros(0)
+    Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(work)))).reshape(n, -1)
+    S = np.asarray(C[work] @ Y)
+    shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
+    guess = np.ones(work.size, dtype=bool)
     info = {}
     for rounds in range(1, max_rounds + 1):
-        new = work[Y.shape[1]:]
-        Y = np.hstack([Y, np.asarray(resolve(np.ascontiguousarray(dense_rows(new)))).reshape(n, -1)])
-        S = np.asarray(C[work] @ Y)
-        lam_w, info = solve_lcp(S, g[work], tol=tol, regularize=regularize)
+        lam_w, info = solve_lcp(S, g[work], tol=tol, shift=shift, active=guess)
         corr = Y @ lam_w
         w = C @ corr + g
         out = np.ones(m, dtype=bool)
@@ -99,7 +176,13 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50):
         viol = np.flatnonzero(out & (w < -tol * scale))
         if viol.size == 0:
             break
+        # Rows the corrected step violates join: their solves and S's new rows and columns.
+        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(viol)))).reshape(n, -1)
+        S = np.block([[S, np.asarray(C[work] @ Y_new)],
+                      [np.asarray(C[viol] @ Y), np.asarray(C[viol] @ Y_new)]])
+        Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
+        guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
                        "active": int((lam > 0).sum()), "unconverged": bool(viol.size) or info.get("unconverged", False)}
@@ -227,19 +310,33 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     corner are left to the vertex contacts.
     """
     out = [], [], [], [], []
-    tri_pos = positions[triangles]
-    centroid = tri_pos.mean(axis=1)
-    reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
-    for c_idx, col in enumerate(colliders):
-        if col.shape not in ("sphere", "capsule") or not getattr(col, "face_contacts", True):
-            continue
+    round_ = [(c_idx, col) for c_idx, col in enumerate(colliders)
+              if col.shape in ("sphere", "capsule") and getattr(col, "face_contacts", True)]
+    if not round_:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    # Cull by vertices first (the surface has half as many vertices as triangles): a point
+    # of a triangle lies within its longest edge of each corner, so a triangle whose
+    # corners are all farther than radius + margin + the longest surface edge from the
+    # collider cannot touch it.
+    corners = [positions[triangles[:, k]] for k in range(3)]
+    longest = np.sqrt(max(float(np.einsum("ij,ij->i", e, e).max()) for e in
+                          (corners[1] - corners[0], corners[2] - corners[1], corners[0] - corners[2])))
+    for c_idx, col in round_:
         a, b = _axis(col)
-        # Cheap cull by the triangles' bounding spheres.
-        gap = np.linalg.norm(centroid - closest_points_on_segment(a, b, centroid), axis=1)
-        near = np.flatnonzero(gap < col.radius + margin + reach)
+        d_v = np.linalg.norm(positions - closest_points_on_segment(a, b, positions), axis=1)
+        near = np.flatnonzero(d_v[triangles].min(axis=1) < col.radius + margin + longest)
         if near.size == 0:
             continue
-        t = tri_pos[near]
+        # Then by the triangles' bounding spheres.
+        tri_pos = positions[triangles[near]]
+        centroid = tri_pos.mean(axis=1)
+        reach = np.linalg.norm(tri_pos - centroid[:, None, :], axis=2).max(axis=1)
+        gap = np.linalg.norm(centroid - closest_points_on_segment(a, b, centroid), axis=1)
+        keep_sphere = gap < col.radius + margin + reach
+        near, tri_pos = near[keep_sphere], tri_pos[keep_sphere]
+        if near.size == 0:
+            continue
+        t = tri_pos
         centre, d2, bary = segment_triangle_closest(a, b, t)
         dist = np.sqrt(d2)
         keep = (dist < col.radius + margin) & (bary.max(axis=1) < 1.0 - corner) & (dist > 1e-12)

@@ -367,6 +367,9 @@ class ReducedModel:
         self.last = {"elastic": 0.0}
         self.stats = {}
         self.contact = None
+        # The contact LCP's warm start (_contact_solve): part of the state, so a rolled
+        # back or replayed step repeats bit for bit.
+        self._contact_history, self._contact_rows_seen = [], None
 
     def get_state(self):
         """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
@@ -374,7 +377,8 @@ class ReducedModel:
         set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
         return {"q": [qi.copy() for qi in self.q], "qd": [qi.copy() for qi in self.qd],
                 "frames": self.frames.copy(), "x_full": self.x_full.copy(), "v_full": self.v_full.copy(),
-                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats)}
+                "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats),
+                "contact_history": list(self._contact_history)}
 
     def set_state(self, state):
         """Restore a get_state() snapshot."""
@@ -383,6 +387,7 @@ class ReducedModel:
         self.frames = state["frames"].copy()
         self.x_full, self.v_full = state["x_full"].copy(), state["v_full"].copy()
         self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
+        self._contact_history, self._contact_rows_seen = list(state.get("contact_history", [])), None
 
     @property
     def n_dofs(self):
@@ -944,6 +949,8 @@ class ReducedModel:
         # Sphere-face contacts enter as weighted copies of their three corners' rows.
         weights = np.ones(len(rows))
         group = np.arange(len(rows))
+        n_all = len(self.vertex_domain)
+        key = ids[rows] + n_all * which                 # a row's identity from step to step
         if contact.get("triangles") is not None:
             t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x,
                                                                       contact["triangles"], contact["margin"])
@@ -955,12 +962,16 @@ class ReducedModel:
                 which = np.concatenate([which, np.repeat(t_which, 3)])
                 phi = np.concatenate([phi, t_phi])
                 normals = np.concatenate([normals, np.repeat(t_n, 3, axis=0)])
+                # Face keys follow every vertex key: n_all n_col + t n_col + c for triangle t, collider c.
+                n_col = len(contact["colliders"])
+                key = np.concatenate([key, n_all * n_col + t_idx * n_col + t_which])
         if len(rows) == 0:
             return None
-        n_rows = group.max() + 1
         verts = ids[rows]
         xv = x[rows]
-        Cv = np.zeros((len(verts), self.n_gen))                 # one row per (contact, corner)
+        # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        blocks = []                                          # (corner rows, columns, values (s, c))
         dom_of = self.vertex_domain[verts]
         for i, (kind, k) in enumerate(self.domain_kind):
             sel = np.flatnonzero(dom_of == i)
@@ -971,29 +982,39 @@ class ReducedModel:
                 dom = self.subspace[k]
                 o = self.sub_offsets[k]
                 loc = self.vertex_local[verts[sel]]
-                RU = np.einsum("ij,ljb->lib", self.frames.R[k], dom.U3[loc])          # (s, 3, r)
-                Cv[sel, o:o + dom.r] = np.einsum("li,lib->lb", n, RU)
+                # n^T R U_l = (R^T n)^T U_l: one contraction over the (s, 3, r) rows of U.
+                blocks.append((sel, o + np.arange(dom.r), np.einsum("li,lib->lb", n @ self.frames.R[k], dom.U3[loc])))
                 if dom.movable:
-                    Cv[sel, o + dom.r:o + dom.r + 3] = n
-                    Cv[sel, o + dom.r + 3:o + dom.r + 6] = np.cross(xv[sel] - self.frames.c[k], n)
+                    blocks.append((sel, o + dom.r + np.arange(6),
+                                   np.hstack([n, np.cross(xv[sel] - self.frames.c[k], n)])))
             else:
                 dofs = self.full_dof_of_vertex[verts[sel]]
                 ok = dofs >= 0
-                rr = sel[ok]
-                for a in range(3):
-                    Cv[rr, self.S + 3 * dofs[ok] + a] = n[ok, a]
-        C = np.zeros((n_rows, self.n_gen))
-        np.add.at(C, group, Cv)
-        C *= self.dt
-        first = np.unique(group, return_index=True)[1]       # a representative corner per contact
-        verts, which, normals, xv = verts[first], which[first], normals[first], xv[first]
+                blocks.append((sel[ok], self.S + 3 * dofs[ok, None] + np.arange(3), n[ok]))
+        if self.F:
+            # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
+            # (duplicates, a face's corners, are summed on construction).
+            row_of = np.searchsorted(starts, np.arange(len(group)), side="right") - 1
+            r_idx = np.concatenate([np.repeat(row_of[sel], vals.shape[1]) for sel, _, vals in blocks])
+            c_idx = np.concatenate([np.broadcast_to(cols, vals.shape).ravel() for _, cols, vals in blocks])
+            values = np.concatenate([vals.ravel() for _, _, vals in blocks])
+            C = sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(len(starts), self.n_gen))
+            norms = np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel())
+        else:
+            Cv = np.zeros((len(verts), self.n_gen))             # one row per (contact, corner)
+            for sel, cols, vals in blocks:
+                Cv[sel[:, None], cols] = vals
+            C = Cv if len(starts) == len(group) else np.add.reduceat(Cv, starts, axis=0)
+            C *= self.dt
+            norms = np.linalg.norm(C, axis=1)
+        verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
-        norms = np.linalg.norm(C, axis=1)
         movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
         if not movable.all():
             verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
                                                  which[movable], xv[movable])
+            key = key[movable]
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
@@ -1002,15 +1023,29 @@ class ReducedModel:
             Cg, Vg, Wg = gm[:3]
             self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
             phi_eff += self._contact_rigid
+        self._contact_row_keys = key
         return verts, C, phi_eff, normals, which
 
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
         from ..contact.unilateral import contact_correction
-        _, C, phi, _, _ = rows
+        verts, C, phi, _, which = rows
+        # The LCP's first guess: the rows active in the last Newton iteration, or in the last
+        # two steps (a resting or pressed body keeps most of its contacts, and a coarse patch
+        # under a held collider can swap its load between vertex and face rows every other
+        # step). It saves solves and pivots only; the answer does not depend on it.
+        keys = self._contact_row_keys
+        history = self._contact_history                          # active keys per step, newest last
+        same_step = self._contact_rows_seen is rows
+        if same_step:
+            hint = self._contact_lam > 0
+        else:
+            hint = np.isin(keys, np.concatenate(history)) if history else None
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
-        lam, corr, _ = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9)
-        self._contact_lam = lam
+        lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        self._contact_info = info
+        self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[lam > 0]]
+        self._contact_lam, self._contact_rows_seen = lam, rows
         return dQ + corr, lam
 
     def step(self, f_ext, gravity=None, contact=None):
@@ -1061,7 +1096,9 @@ class ReducedModel:
         def residual(Q, G_k):
             return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
 
+        t_c = time.perf_counter()
         contact_rows = self._contact_rows(contact, gm) if contact else None
+        contact_s = time.perf_counter() - t_c
         lam = None
         if contact_rows is not None and self.scheme == "two_step":
             raise SceneError("contact is available with the one-step scheme only")
@@ -1078,7 +1115,9 @@ class ReducedModel:
                 A = self._system(M_ss, K_ss, K_sI, K_ff, D)
                 dQ = self._solve(*A, -r)
                 if contact_rows is not None:
+                    t_c = time.perf_counter()
                     dQ, lam = self._contact_solve(contact_rows, Q, dQ)
+                    contact_s += time.perf_counter() - t_c
                     if it == 0:
                         # A body at rest pushed only by a collider has r0 = 0: measure the
                         # tolerance against the contact forces' size instead.
@@ -1135,12 +1174,16 @@ class ReducedModel:
         external_work = dt * float(F_app @ self.get_Q())
         self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
                       "contact_work": contact_work,
+                      "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
                       "domain_ms": timing["domain_ms"],
                       "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
                       "angular_momentum_correction": self._dW,
                       "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
+        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
+            self.stats.update(contact_rows=self._contact_info["rows"],
+                              contact_working_set=self._contact_info["working_set"])
         self.timing = {}
         return self.stats
 
