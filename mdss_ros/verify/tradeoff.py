@@ -63,6 +63,8 @@ SETTINGS = {
     "peers_only": False,              # only the peer comparison: skip the sweep and its ground truth
     "timing_rounds": 3,               # round-robin re-timing passes over all configurations
     "timing_steps": 60,               # steps per configuration and pass (after warm-up)
+    "tip_force_scale": 1.0,           # limbed peers: the static tip force x this (large deformation: ~10)
+    "side_force": 0.0,                # limbed peers: N sideways on a second arm (0: none)
 }
 QUICK = {"horizon": 1.0, "variants": "quick", "timing_rounds": 2, "timing_steps": 30}
 
@@ -481,8 +483,9 @@ def peer_comparison(scene_src, scene, base, cfg, out, quick, log):
     if is_clamped_box_beam(scene):
         return dict(beam_peer_comparison(scene_src, base, out, **kw), kind="beam")
     if is_limbed_scene(scene):
-        return dict(limbed_peer_comparison(scene_src, base, out, timing_steps=int(cfg["timing_steps"]), **kw),
-                    kind="limbed")
+        return dict(limbed_peer_comparison(scene_src, base, out, timing_steps=int(cfg["timing_steps"]),
+                                           tip_force_scale=float(cfg["tip_force_scale"]),
+                                           side_force=float(cfg["side_force"]), **kw), kind="limbed")
     return {"skipped": "the peer comparison needs a clamped box beam (box mesh, x = 0 face pinned) or a limbed "
                        "body (pins on one face of its bounding box, two or more handles, a wrench in the timeline)"}
 
