@@ -45,9 +45,16 @@ mapped to generalised forces by the vertex Jacobian (qfrc_applied = J^T f, exact
 positions are linear in the slide-joint coordinates). The timed runs use MuJoCo's own
 gravity (the cost of a step does not depend on the load).
 
+Large deformation (limbed_loads: tip_force_scale, side_force; `mdss tradeoff ... --set
+tradeoff.tip_force_scale=12 --set tradeoff.side_force=15`): the tip force times K and a
+horizontal force on the unloaded arm farthest from the pins, so that one limb turns far up
+and another sideways: the case a frame per limb is for. The result records every handle's
+best-fit rotation in the FEM statics (fem_bend_deg) and in each row (bend_deg).
+
 Static equilibrium and cost follow peers.py: MuJoCo stepped with a heavier elastic damping
-until every velocity is below 1e-9; ours: full-space Newton statics (ours_fem_static, the
-reference) and the reduced model's backward Euler at dt = 10 s (ours_static_sag). Cost:
+until every velocity is below 1e-9; ours: full-space Newton statics with load stepping
+(fem_static, the reference) and the reduced model's backward Euler at dt = 10 s with the
+load ramped when one increment does not settle (reduced_static). Cost:
 median ms per step at the scene's dt under gravity from rest, every row re-timed in
 round-robin passes (the smallest pass median kept), measured in one process under the
 same load.

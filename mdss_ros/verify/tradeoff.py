@@ -34,7 +34,9 @@ box beam the peer comparison with MuJoCo's flex (verify/peers.py) runs in the sa
 report (DIR/tradeoff_peers.png); for a limbed body (pinned on one face of its bounding box,
 handles, a wrench in the timeline: msg_scenes/star_limbs.yaml) the static comparison of
 verify/peers_limbed.py does (DIR/tradeoff_peers_limbed.png). `--set tradeoff.peers_only=true`
-runs the peer comparison alone (no sweep, no ground-truth run).
+runs the peer comparison alone (no sweep, no ground-truth run). The limbed comparison's
+large-deformation case: `--set tradeoff.tip_force_scale=12 --set tradeoff.side_force=15`
+(star_limbs: arm0 turns ~54 degrees up, arm2 ~29 degrees sideways in our FEM statics).
 
 --set KEY=VALUE: keys `tradeoff.NAME` change a study setting (SETTINGS); other keys
 override the scene (the base configuration every variant starts from).
