@@ -232,3 +232,17 @@ def test_reduced_statics_ramp_the_load_and_agree_with_one_step_on_a_small_load()
     peak = np.linalg.norm(x1 - sim.rest_positions(), axis=1).max()
     assert peak > 1e-4 and np.abs(x4 - x1).max() < 1e-6 * peak
     assert sim.model.dt == pytest.approx(1 / 90)              # restored
+
+
+def test_per_domain_modes_give_the_hub_its_own_mode_count():
+    from mdss_ros.errors import SceneError
+    from mdss_ros.simulator import Simulator
+    sc = tiny_scene()
+    sc["model"]["basis"] = {"modes": {"hub": 10}}
+    sim = Simulator(load_scene(sc))
+    assert {d.name: d.r for d in sim.model.subspace} == {"hub": 10, "armx": 6, "army": 6}
+    assert sim.model.n_dofs == 10 + 2 * (6 + 6)
+    for bad in ({"nohub": 10}, {"hub": 0}, {"hub": 2.5}):
+        sc["model"]["basis"] = {"modes": bad}
+        with pytest.raises(SceneError, match="model.basis.modes"):
+            Simulator(load_scene(sc))
