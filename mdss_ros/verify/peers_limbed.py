@@ -86,17 +86,21 @@ METRIC_NAMES = {
 MUJOCO_ROWS = [("full", None), ("trilinear", None), ("quadratic", None), ("quadratic", (1, 1, 3)),
                ("quadratic", (2, 2, 3)), ("quadratic", (4, 4, 3)), ("trilinear", (8, 8, 3))]
 MUJOCO_ROWS_QUICK = [("full", None), ("quadratic", None)]
-# Our reduced rows: (label, scene overrides).
+# Our reduced rows: (label, scene overrides). star_limbs' own config gives its hub 30 modes
+# and each arm 12 (model.basis.modes); "model.basis": {} drops that (every domain model.modes).
+ONE = {"model.domains": {"count": 1}, "model.cubature.interface": "exact", "model.basis": {}}
 OURS = [("scene config", {}),
-        ("per-limb domains, r = 6", {"model.modes": 6}),
-        ("per-limb domains, r = 20", {"model.modes": 20}),
-        ("per-limb domains, r = 12, exact cubature", {"model.cubature": {"samples": 0, "interface": "exact"}}),
-        ("1 domain, r = 12", {"model.domains": {"count": 1}, "model.cubature.interface": "exact"}),
-        ("1 domain, r = 20", {"model.domains": {"count": 1}, "model.modes": 20,
-                              "model.cubature.interface": "exact"}),
-        ("1 domain, r = 30", {"model.domains": {"count": 1}, "model.modes": 30,
-                              "model.cubature.interface": "exact"})]
-OURS_QUICK = OURS[:1] + OURS[4:5]
+        ("per-limb domains, r = 12 everywhere", {"model.basis": {}}),
+        ("per-limb domains, r = 12 everywhere, linear modes only", {"model.basis": {"derivatives": False}}),
+        ("per-limb domains, r = 20 everywhere", {"model.modes": 20, "model.basis": {}}),
+        ("per-limb domains, arms r = 20, hub r = 30", {"model.modes": 20}),
+        ("per-limb domains, exact cubature", {"model.cubature": {"samples": 0, "interface": "exact"}}),
+        ("hub full-space, arms r = 12", {"model.full_space_domains": ["hub"], "model.cubature.interface": "exact",
+                                         "model.basis": {}}),
+        ("1 domain, r = 12", dict(ONE)),
+        ("1 domain, r = 20", dict(ONE, **{"model.modes": 20})),
+        ("1 domain, r = 30", dict(ONE, **{"model.modes": 30}))]
+OURS_QUICK = OURS[:1] + OURS[7:8]
 
 
 # ---------------------------------------------------------------------- the body and its load
@@ -521,7 +525,7 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         t0 = time.perf_counter()
         try:
             sc = load_scene(scene_src, dict(base, **{"model.kind": "reduced"}, **ov))
-            cache_dir = Path(out) / "cache" / ("peers_limbed_" + "".join(c if c.isalnum() else "_" for c in label)[:40])
+            cache_dir = Path(out) / "cache" / ("peers_limbed_" + "".join(c if c.isalnum() else "_" for c in label)[:72])
             sim = Simulator(sc, cache=PrecomputeCache(cache_dir))
             build_s = time.perf_counter() - t0
             x, ramp = reduced_static(sim, loads)
