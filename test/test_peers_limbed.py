@@ -246,3 +246,21 @@ def test_per_domain_modes_give_the_hub_its_own_mode_count():
         sc["model"]["basis"] = {"modes": bad}
         with pytest.raises(SceneError, match="model.basis.modes"):
             Simulator(load_scene(sc))
+
+
+@pytest.mark.slow
+def test_large_deformation_case_bends_the_loaded_arm_past_45_degrees(tmp_path):
+    from mdss_ros.cli import main
+    assert main(["tradeoff", "msg_scenes/star_limbs.yaml", "--out", str(tmp_path), "--quick",
+                 "--set", "tradeoff.peers_only=true", "--set", "tradeoff.tip_force_scale=12",
+                 "--set", "tradeoff.side_force=15"]) == 0
+    p = json.loads((tmp_path / "tradeoff.json").read_text())["peers"]
+    bend = p["load"]["fem_bend_deg"]
+    assert p["load"]["loaded"] == ["arm0_tip", "arm2_tip"]
+    assert bend["arm0_tip"] >= 45.0 and bend["arm2_tip"] >= 20.0
+    assert max(v for k, v in bend.items() if k not in p["load"]["loaded"]) < 10.0
+    rows = {r["label"]: r for r in p["rows"]}
+    assert not [r for r in p["rows"] if "failed" in r]
+    for r in p["rows"]:
+        assert np.isfinite(r["rms_vs_fem"]) and np.isfinite(r["tip_loaded"]), r["label"]
+    assert rows["mdss reduced: scene config"]["bend_deg"]["arm0_tip"] > 10.0
