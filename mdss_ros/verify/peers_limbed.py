@@ -560,7 +560,10 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         row["error_x_ms"] = row["rms_vs_fem"] * row["step_ms"]
     result["summary"] = limbed_summary(rows)
     result["table"] = limbed_table(rows, ", ".join(loaded))
-    result["plots"] = [limbed_plot(rows, Path(out) / "tradeoff_peers_limbed.png", scene.name)]
+    what = ("one arm's tip force" if len(wrenches) == 1 and tip_force_scale == 1.0 else
+            " + ".join(f"{np.linalg.norm(f):.3g} N on {h} (FEM: turns {result['load']['fem_bend_deg'][h]:.0f} deg)"
+                       for h, f, _ in wrenches))
+    result["plots"] = [limbed_plot(rows, Path(out) / "tradeoff_peers_limbed.png", scene.name, what)]
     return result
 
 
@@ -618,7 +621,7 @@ def limbed_table(rows, loaded):
                          f"tip err {loaded} % (worst)", "worst unloaded tip err %", "err x ms (% ms)"], body)
 
 
-def limbed_plot(rows, path, name):
+def limbed_plot(rows, path, name, load="one arm's tip force"):
     """Two log-log panels, ms/step vs RMS displacement error against our full FEM and
     against MuJoCo's full flex; MuJoCo squares, ours circles, every point labelled."""
     from .plotting import _plt, _save
@@ -645,5 +648,5 @@ def limbed_plot(rows, path, name):
     axes[0].scatter([], [], marker="o", color="tab:blue", label="mdss reduced (DOFs)")
     axes[0].scatter([], [], marker="o", color="k", label="mdss full-space FEM")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{name}: static equilibrium under gravity + one arm's tip force, MuJoCo flex vs mdss", fontsize=11)
+    fig.suptitle(f"{name}: static equilibrium under gravity + {load}, MuJoCo flex vs mdss", fontsize=11)
     return _save(fig, path)
