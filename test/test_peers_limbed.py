@@ -175,3 +175,92 @@ def test_without_mujoco_the_comparison_skips_its_rows_with_the_install_hint(tmp_
     assert "requirements-peers.txt" in res["mujoco"]["skipped"] and "mujoco==4.0.0" in res["mujoco"]["skipped"]
     assert [r["who"] for r in res["rows"]] == ["mdss"]
     assert res["summary"] == ["no MuJoCo quadratic flex row: nothing to compare"]
+
+
+def test_large_deformation_loads_scale_the_tip_force_and_push_the_farthest_free_arm_sideways():
+    from mdss_ros.body import build_body
+    scene = load_scene(tiny_scene())
+    s = pl.limbed_setup(scene, build_body(scene))
+    assert [(h, f.tolist()) for h, f, _ in pl.limbed_loads(scene, s)] == [("armx_tip", [0.0, 0.0, 4.0])]
+    loads = pl.limbed_loads(scene, s, tip_force_scale=3.0, side_force=2.0)
+    assert loads[0][0] == "armx_tip" and np.allclose(loads[0][1], [0, 0, 12.0])
+    name, f, t = loads[1]
+    assert name == "army_tip" and not t.any()
+    # Horizontal, 2 N, perpendicular to the line from the pins to the arm's tip (along +y).
+    assert f[2] == 0.0 and np.linalg.norm(f) == pytest.approx(2.0) and abs(f[1]) < 1e-12
+    with pytest.raises(pl.ReportError, match="tip_force_scale"):
+        pl.limbed_loads(scene, s, tip_force_scale=0.0)
+
+
+def test_handle_rotation_is_the_angle_of_a_rigid_turn_and_ignores_translation():
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(30, 3))
+    ids = np.arange(5, 25)
+    theta = np.radians(50.0)
+    axis = np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5])
+    Kx = np.cross(np.eye(3), axis)
+    R = np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
+    x = X @ R.T + [0.3, -1.0, 2.0]
+    assert pl.handle_rotation_deg(X, x, ids) == pytest.approx(50.0, rel=1e-9)
+    assert pl.handle_rotation_deg(X, X + 1.0, ids) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_metrics_with_two_loaded_arms_take_the_worse_loaded_tip():
+    from mdss_ros.body import build_body
+    scene = load_scene(tiny_scene())
+    body = build_body(scene)
+    X = body.vertices
+    x_ref = X + [0.0, 0.0, 0.01]
+    x = x_ref.copy()
+    x[body.handles["army_tip"]] += [0.0, 0.0, 0.005]          # half the reference's tip motion off
+    one = pl.displacement_metrics(X, x, x_ref, body.handles, "armx_tip")
+    two = pl.displacement_metrics(X, x, x_ref, body.handles, ["armx_tip", "army_tip"])
+    assert one["tip_loaded"] == 0.0 and one["tip_unloaded"] == pytest.approx(0.5)
+    assert two["tip_loaded"] == pytest.approx(0.5) and two["tip_loaded_handle"] == "army_tip"
+    assert "tip_unloaded" not in two
+
+
+def test_reduced_statics_ramp_the_load_and_agree_with_one_step_on_a_small_load():
+    from mdss_ros.simulator import Simulator
+    sim = Simulator(load_scene(tiny_scene()))
+
+    def loads(s, scale=1.0):
+        s.set_wrench("armx_tip", [0, 0, 4.0 * scale])
+    x1, n1 = pl.reduced_static(sim, loads, ladder=(1,))
+    x4, n4 = pl.reduced_static(sim, loads, ladder=(4,))
+    assert (n1, n4) == (1, 4)
+    peak = np.linalg.norm(x1 - sim.rest_positions(), axis=1).max()
+    assert peak > 1e-4 and np.abs(x4 - x1).max() < 1e-6 * peak
+    assert sim.model.dt == pytest.approx(1 / 90)              # restored
+
+
+def test_per_domain_modes_give_the_hub_its_own_mode_count():
+    from mdss_ros.errors import SceneError
+    from mdss_ros.simulator import Simulator
+    sc = tiny_scene()
+    sc["model"]["basis"] = {"modes": {"hub": 10}}
+    sim = Simulator(load_scene(sc))
+    assert {d.name: d.r for d in sim.model.subspace} == {"hub": 10, "armx": 6, "army": 6}
+    assert sim.model.n_dofs == 10 + 2 * (6 + 6)
+    for bad in ({"nohub": 10}, {"hub": 0}, {"hub": 2.5}):
+        sc["model"]["basis"] = {"modes": bad}
+        with pytest.raises(SceneError, match="model.basis.modes"):
+            Simulator(load_scene(sc))
+
+
+@pytest.mark.slow
+def test_large_deformation_case_bends_the_loaded_arm_past_45_degrees(tmp_path):
+    from mdss_ros.cli import main
+    assert main(["tradeoff", "msg_scenes/star_limbs.yaml", "--out", str(tmp_path), "--quick",
+                 "--set", "tradeoff.peers_only=true", "--set", "tradeoff.tip_force_scale=12",
+                 "--set", "tradeoff.side_force=15"]) == 0
+    p = json.loads((tmp_path / "tradeoff.json").read_text())["peers"]
+    bend = p["load"]["fem_bend_deg"]
+    assert p["load"]["loaded"] == ["arm0_tip", "arm2_tip"]
+    assert bend["arm0_tip"] >= 45.0 and bend["arm2_tip"] >= 20.0
+    assert max(v for k, v in bend.items() if k not in p["load"]["loaded"]) < 10.0
+    rows = {r["label"]: r for r in p["rows"]}
+    assert not [r for r in p["rows"] if "failed" in r]
+    for r in p["rows"]:
+        assert np.isfinite(r["rms_vs_fem"]) and np.isfinite(r["tip_loaded"]), r["label"]
+    assert rows["mdss reduced: scene config"]["bend_deg"]["arm0_tip"] > 10.0

@@ -105,6 +105,13 @@ class ReducedModel:
         # Domains ----------------------------------------------------------------
         r = cfg["modes"]
         basis_opts = dict(cfg.get("basis") or {})
+        # model.basis.modes: {domain name: r} overrides model.modes for those domains (a hub
+        # that carries the moments of several limbs needs more modes than each limb).
+        modes_by_name = basis_opts.pop("modes", None) or {}
+        if not isinstance(modes_by_name, dict) or set(modes_by_name) - set(names) or not all(
+                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in modes_by_name.values()):
+            raise SceneError(f"model.basis.modes must map domain names ({', '.join(map(str, names))}) to positive "
+                             f"integers, got {modes_by_name!r}")
         self.subspace, self.full = [], []
         self.vertex_domain = np.asarray(labels, dtype=np.int64)
         self.vertex_local = np.empty(n, dtype=np.int64)
@@ -116,7 +123,8 @@ class ReducedModel:
                 self.domain_kind.append(("full", len(self.full)))
                 self.full.append(FullDomain(i, names[i], verts, ~pinned_mask[verts], part.domain_elements[i]))
                 continue
-            r_i = min(r, 3 * len(verts) - (6 if not pinned_mask[verts].any() else 3 * int(pinned_mask[verts].sum())))
+            r_i = min(modes_by_name.get(names[i], r),
+                      3 * len(verts) - (6 if not pinned_mask[verts].any() else 3 * int(pinned_mask[verts].sum())))
             if r_i < 1:
                 raise SceneError(f"domain {names[i]} has too few free DOFs for a subspace ({len(verts)} vertices)")
             cached_U = hit[0].get(f"U_{i}") if hit is not None else None

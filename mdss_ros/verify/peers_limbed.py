@@ -45,9 +45,16 @@ mapped to generalised forces by the vertex Jacobian (qfrc_applied = J^T f, exact
 positions are linear in the slide-joint coordinates). The timed runs use MuJoCo's own
 gravity (the cost of a step does not depend on the load).
 
+Large deformation (limbed_loads: tip_force_scale, side_force; `mdss tradeoff ... --set
+tradeoff.tip_force_scale=12 --set tradeoff.side_force=15`): the tip force times K and a
+horizontal force on the unloaded arm farthest from the pins, so that one limb turns far up
+and another sideways: the case a frame per limb is for. The result records every handle's
+best-fit rotation in the FEM statics (fem_bend_deg) and in each row (bend_deg).
+
 Static equilibrium and cost follow peers.py: MuJoCo stepped with a heavier elastic damping
-until every velocity is below 1e-9; ours: full-space Newton statics (ours_fem_static, the
-reference) and the reduced model's backward Euler at dt = 10 s (ours_static_sag). Cost:
+until every velocity is below 1e-9; ours: full-space Newton statics with load stepping
+(fem_static, the reference) and the reduced model's backward Euler at dt = 10 s with the
+load ramped when one increment does not settle (reduced_static). Cost:
 median ms per step at the scene's dt under gravity from rest, every row re-timed in
 round-robin passes (the smallest pass median kept), measured in one process under the
 same load.
@@ -66,8 +73,7 @@ import numpy as np
 
 from ..precompute import PrecomputeCache
 from ..scene import load_scene
-from .peers import (MUJOCO_VERSION, compare_to, match_vertices, median_ms_from_rest, mujoco_module,
-                    ours_fem_static, ours_static_sag)
+from .peers import MUJOCO_VERSION, compare_to, match_vertices, median_ms_from_rest, mujoco_module
 from .reduced_reports import ReportError, format_table
 
 METRIC_NAMES = {
@@ -80,17 +86,21 @@ METRIC_NAMES = {
 MUJOCO_ROWS = [("full", None), ("trilinear", None), ("quadratic", None), ("quadratic", (1, 1, 3)),
                ("quadratic", (2, 2, 3)), ("quadratic", (4, 4, 3)), ("trilinear", (8, 8, 3))]
 MUJOCO_ROWS_QUICK = [("full", None), ("quadratic", None)]
-# Our reduced rows: (label, scene overrides).
+# Our reduced rows: (label, scene overrides). star_limbs' own config gives its hub 30 modes
+# and each arm 12 (model.basis.modes); "model.basis": {} drops that (every domain model.modes).
+ONE = {"model.domains": {"count": 1}, "model.cubature.interface": "exact", "model.basis": {}}
 OURS = [("scene config", {}),
-        ("per-limb domains, r = 6", {"model.modes": 6}),
-        ("per-limb domains, r = 20", {"model.modes": 20}),
-        ("per-limb domains, r = 12, exact cubature", {"model.cubature": {"samples": 0, "interface": "exact"}}),
-        ("1 domain, r = 12", {"model.domains": {"count": 1}, "model.cubature.interface": "exact"}),
-        ("1 domain, r = 20", {"model.domains": {"count": 1}, "model.modes": 20,
-                              "model.cubature.interface": "exact"}),
-        ("1 domain, r = 30", {"model.domains": {"count": 1}, "model.modes": 30,
-                              "model.cubature.interface": "exact"})]
-OURS_QUICK = OURS[:1] + OURS[4:5]
+        ("per-limb domains, r = 12 everywhere", {"model.basis": {}}),
+        ("per-limb domains, r = 12 everywhere, linear modes only", {"model.basis": {"derivatives": False}}),
+        ("per-limb domains, r = 20 everywhere", {"model.modes": 20, "model.basis": {}}),
+        ("per-limb domains, arms r = 20, hub r = 30", {"model.modes": 20}),
+        ("per-limb domains, exact cubature", {"model.cubature": {"samples": 0, "interface": "exact"}}),
+        ("hub full-space, arms r = 12", {"model.full_space_domains": ["hub"], "model.cubature.interface": "exact",
+                                         "model.basis": {}}),
+        ("1 domain, r = 12", dict(ONE)),
+        ("1 domain, r = 20", dict(ONE, **{"model.modes": 20})),
+        ("1 domain, r = 30", dict(ONE, **{"model.modes": 30}))]
+OURS_QUICK = OURS[:1] + OURS[7:8]
 
 
 # ---------------------------------------------------------------------- the body and its load
@@ -115,6 +125,45 @@ def static_load(scene):
         return None
     return (ev["frame_id"], np.asarray(ev.get("force", (0, 0, 0)), dtype=np.float64),
             np.asarray(ev.get("torque", (0, 0, 0)), dtype=np.float64))
+
+
+def limbed_loads(scene, setup, tip_force_scale=1.0, side_force=0.0):
+    """The static loads [(handle, force (3,), torque (3,)), ...]: the timeline's first
+    wrench scaled by tip_force_scale (the large-deformation case raises it until the arm
+    bends far), and with side_force > 0 N a horizontal force of that size on the unloaded
+    handle farthest from the pins, perpendicular to the line pins -> handle (a second arm
+    bent sideways, about the vertical axis, while the first bends up).
+
+    setup: {"X" (n_verts, 3) rest positions, "pinned" (p,) ids, "handles": name -> ids}
+    (limbed_setup's keys)."""
+    first = static_load(scene)
+    if first is None:
+        raise ReportError("the limbed peer comparison needs a wrench event in the scene's timeline (the static load)")
+    if not np.isfinite(tip_force_scale) or tip_force_scale <= 0 or not np.isfinite(side_force) or side_force < 0:
+        raise ReportError(f"tip_force_scale must be > 0 and side_force >= 0 (got {tip_force_scale!r}, {side_force!r})")
+    handle, force, torque = first
+    loads = [(handle, float(tip_force_scale) * force, float(tip_force_scale) * torque)]
+    if side_force > 0:
+        X, root = setup["X"], setup["X"][setup["pinned"]].mean(0)
+        others = {k: X[ids].mean(0) - root for k, ids in setup["handles"].items() if k != handle}
+        if not others:
+            raise ReportError("side_force needs a second handle")
+        name = max(others, key=lambda k: np.hypot(*others[k][:2]))
+        axis = np.array([others[name][0], others[name][1], 0.0])
+        side = np.cross([0.0, 0.0, 1.0], axis / max(np.linalg.norm(axis), 1e-300))
+        loads.append((name, float(side_force) * side, np.zeros(3)))
+    return loads
+
+
+def handle_rotation_deg(X, x, ids):
+    """Angle (degrees) of the best-fit rotation taking the handle's rest vertices X[ids] to
+    x[ids] (Kabsch, centroids removed): how far the limb's end has turned. X, x (n, 3)."""
+    P = X[ids] - X[ids].mean(0)
+    Q = x[ids] - x[ids].mean(0)
+    U, _, Vt = np.linalg.svd(P.T @ Q)
+    d = np.sign(np.linalg.det(U @ Vt))
+    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def is_limbed_scene(scene):
@@ -292,16 +341,83 @@ def rms_displacement_error(X, x, x_ref):
 
 
 def displacement_metrics(X, x, x_fem, handles, loaded, x_mjfull=None):
-    """The module's metrics for one static state x (n_verts, 3); handles: name -> ids."""
-    out = {"rms_vs_fem": rms_displacement_error(X, x, x_fem),
-           "tip_loaded": tip_error(X, x, x_fem, handles[loaded]),
-           "tips": {name: tip_error(X, x, x_fem, ids) for name, ids in handles.items()}}
-    others = {k: v for k, v in out["tips"].items() if k != loaded}
+    """The module's metrics for one static state x (n_verts, 3); handles: name -> ids;
+    loaded: the loaded handle's name, or a list of them (tip_loaded is then the worst)."""
+    loaded = [loaded] if isinstance(loaded, str) else list(loaded)
+    tips = {name: tip_error(X, x, x_fem, ids) for name, ids in handles.items()}
+    worst_loaded = max(loaded, key=tips.get)
+    out = {"rms_vs_fem": rms_displacement_error(X, x, x_fem), "tips": tips,
+           "tip_loaded": tips[worst_loaded], "tip_loaded_handle": worst_loaded}
+    others = {k: v for k, v in tips.items() if k not in loaded}
     if others:
         worst = max(others, key=others.get)
         out["tip_unloaded"], out["tip_unloaded_handle"] = others[worst], worst
     out["rms_vs_mjfull"] = None if x_mjfull is None else rms_displacement_error(X, x, x_mjfull)
     return out
+
+
+# ---------------------------------------------------------------------- statics
+FEM_LOAD_STEPS = (1, 3, 10, 30)
+REDUCED_LOAD_STEPS = (1, 4, 16)
+
+
+def fem_static(sim, ladder=FEM_LOAD_STEPS):
+    """Full-space static equilibrium of a full Simulator under its gravity and held loads:
+    Newton statics with the load ramped over the first load-step count of `ladder` that
+    converges (large deformations need the ramp). Returns (x (n, 3), info)."""
+    from ..fem.statics import static_equilibrium
+    best = None
+    for steps in ladder:
+        x, info = static_equilibrium(sim.model.force_model, sim.external_forces(), tol=1e-9, max_iterations=30,
+                                     load_steps=steps)
+        info["load_steps"] = steps
+        if best is None or info["residual"] < best[1]["residual"]:
+            best = (x, info)
+        if info["converged"]:
+            break
+    if best[1]["residual"] > 1e-6:
+        raise ReportError(f"full-space statics did not converge: {best[1]}")
+    return best
+
+
+def reduced_static(sim, loads, ladder=REDUCED_LOAD_STEPS, tol=1e-9, max_steps=40):
+    """Static equilibrium of a built reduced Simulator: backward Euler at dt = 10 s with 10
+    Newton iterations a step (as peers.ours_static_sag), the held loads ramped in n equal
+    increments, each settled before the next; n = the first entry of `ladder` that settles.
+    loads(sim, scale) applies scale x the loads. Returns (x (n_verts, 3), n)."""
+    m = sim.model
+    saved = (m.dt, m.newton_iterations, m.tolerance)
+    why = ""
+    try:
+        for n in ladder:
+            sim.reset()
+            m.set_dt(10.0)
+            m.newton_iterations, m.tolerance = 10, 1e-10
+            X = sim.rest_positions()
+            prev, ok = X.copy(), True
+            for k in range(1, n + 1):
+                loads(sim, k / n)
+                for _ in range(max_steps):
+                    sim.step()
+                    x = sim.vertex_positions()
+                    if not np.all(np.isfinite(x)):
+                        ok, why = False, f"non-finite state at load step {k}/{n}"
+                        break
+                    inc = float(np.abs(x - prev).max())
+                    prev = x.copy()
+                    if inc <= tol * max(float(np.linalg.norm(x - X, axis=1).max()), 1e-300):
+                        break
+                else:
+                    ok, why = False, f"no convergence in {max_steps} steps at load step {k}/{n} (increment {inc:.3g} m)"
+                if not ok:
+                    break
+            if ok:
+                return x.copy(), n
+        raise ReportError(f"reduced static solve: {why}")
+    finally:
+        m.set_dt(saved[0])
+        m.newton_iterations, m.tolerance = saved[1], saved[2]
+        sim.reset()
 
 
 # ---------------------------------------------------------------------- the comparison
@@ -326,9 +442,10 @@ def _mujoco_label(mj, dof, cells):
 
 
 def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=print, timing_steps=60,
-                           timing_rounds=3):
+                           timing_rounds=3, tip_force_scale=1.0, side_force=0.0):
     """MuJoCo flex (full, trilinear, quadratic, multi-cell) vs our full-space FEM and reduced
-    configurations, static equilibrium under gravity + the timeline's first wrench; see the
+    configurations, static equilibrium under gravity + the timeline's first wrench (times
+    tip_force_scale, plus side_force N sideways on a second arm: limbed_loads); see the
     module docstring. Returns rows, table, summary lines and the PNG path ("mujoco":
     {"skipped": reason} without MuJoCo: our rows still run)."""
     from ..simulator import Simulator
@@ -337,33 +454,43 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
     full = Simulator(load_scene(scene_src, dict(base, **{"model.kind": "full",
                                                        "model.integrator.newton_iterations": 1})))
     s = limbed_setup(scene, full.body)
-    handle, force, torque = s["load"]
+    wrenches = limbed_loads(scene, s, tip_force_scale, side_force)
+    handle, force, torque = wrenches[0]
+    loaded = [w[0] for w in wrenches]
     X = s["X"]
     log(f"peers (limbed): {len(X)} vertices, {len(s['tets'])} tets, {len(s['pinned'])} pinned, handles "
-        f"{sorted(s['handles'])}; load: gravity {s['gravity']} + wrench on {handle!r} force {force.tolist()}")
+        f"{sorted(s['handles'])}; load: gravity {s['gravity']} + "
+        + " + ".join(f"force {np.round(f, 4).tolist()} on {h!r}" for h, f, _ in wrenches))
     result = {"scene": scene.name, "load": {"handle": handle, "force": force.tolist(), "torque": torque.tolist(),
-                                            "gravity": s["gravity"]},
+                                            "gravity": s["gravity"], "tip_force_scale": float(tip_force_scale),
+                                            "side_force": float(side_force), "loaded": loaded,
+                                            "wrenches": [[h, f.tolist(), t.tolist()] for h, f, t in wrenches]},
               "mesh": {"vertices": len(X), "tets": len(s["tets"]), "pinned": len(s["pinned"])},
               "metrics": METRIC_NAMES, "rows": []}
     rows = result["rows"]
 
-    def loads(sim):
-        sim.set_wrench(handle, force, torque)
+    def loads(sim, scale=1.0):
+        for h, f, t in wrenches:
+            sim.set_wrench(h, scale * f, scale * t)
 
     # Our full-space FEM statics: the reference, and the full-space row.
     t0 = time.perf_counter()
     loads(full)
     f_ext = full.external_forces()
-    x_fem, info = ours_fem_static(full)
+    x_fem, info = fem_static(full)
     full.reset()
     peak = float(np.linalg.norm(x_fem - X, axis=1).max())
     result["fem_peak_displacement"] = peak
+    result["load"]["fem_bend_deg"] = {h: handle_rotation_deg(X, x_fem, s["handles"][h]) for h in s["handles"]}
+    log("peers (limbed): FEM handle rotations (deg): "
+        + ", ".join(f"{h} {a:.1f}" for h, a in result["load"]["fem_bend_deg"].items()))
     rows.append({"label": "mdss full FEM (1 Newton it./step)", "who": "mdss", "dofs": int(full.model.n_dofs),
                  "step_ms": median_ms_from_rest(full, max(5, timing_steps // 10)), "x": x_fem,
                  "statics": dict(info, wall_s=time.perf_counter() - t0),
                  "_timer": lambda: median_ms_from_rest(full, max(5, timing_steps // 10))})
     log(f"peers (limbed): our full FEM statics: peak displacement {1e3 * peak:.3f} mm, {info['iterations']} Newton "
-        f"iterations (residual {info['residual']:.2g}), {rows[-1]['step_ms']:.2f} ms/step")
+        f"iterations in {info['load_steps']} load steps (residual {info['residual']:.2g}), "
+        f"{rows[-1]['step_ms']:.2f} ms/step")
 
     mj, why = mujoco_module()
     x_mjfull = None
@@ -398,11 +525,11 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         t0 = time.perf_counter()
         try:
             sc = load_scene(scene_src, dict(base, **{"model.kind": "reduced"}, **ov))
-            cache_dir = Path(out) / "cache" / ("peers_limbed_" + "".join(c if c.isalnum() else "_" for c in label)[:40])
+            cache_dir = Path(out) / "cache" / ("peers_limbed_" + "".join(c if c.isalnum() else "_" for c in label)[:72])
             sim = Simulator(sc, cache=PrecomputeCache(cache_dir))
             build_s = time.perf_counter() - t0
-            x = ours_static_sag(sim, loads=loads)
-            row = {"label": label, "who": "mdss", "dofs": int(sim.model.n_dofs), "domains": int(sim.stats()["domains"]),
+            x, ramp = reduced_static(sim, loads)
+            row = {"static_load_steps": ramp, "label": label, "who": "mdss", "dofs": int(sim.model.n_dofs), "domains": int(sim.stats()["domains"]),
                    "build_s": build_s, "step_ms": median_ms_from_rest(sim, timing_steps), "x": x, "overrides": ov,
                    "_timer": (lambda s_=sim: median_ms_from_rest(s_, timing_steps))}
         except ReportError as err:
@@ -427,12 +554,16 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         x = row.pop("x", None)
         if "failed" in row or x is None:
             continue
-        row.update(displacement_metrics(X, x, x_fem, s["handles"], handle, x_mjfull))
+        row.update(displacement_metrics(X, x, x_fem, s["handles"], loaded, x_mjfull))
+        row["bend_deg"] = {h: handle_rotation_deg(X, x, s["handles"][h]) for h in loaded}
         row["tip_displacement"] = {k: (x[ids].mean(0) - X[ids].mean(0)).tolist() for k, ids in s["handles"].items()}
         row["error_x_ms"] = row["rms_vs_fem"] * row["step_ms"]
     result["summary"] = limbed_summary(rows)
-    result["table"] = limbed_table(rows, handle)
-    result["plots"] = [limbed_plot(rows, Path(out) / "tradeoff_peers_limbed.png", scene.name)]
+    result["table"] = limbed_table(rows, ", ".join(loaded))
+    what = ("one arm's tip force" if len(wrenches) == 1 and tip_force_scale == 1.0 else
+            " + ".join(f"{np.linalg.norm(f):.3g} N on {h} (FEM: turns {result['load']['fem_bend_deg'][h]:.0f} deg)"
+                       for h, f, _ in wrenches))
+    result["plots"] = [limbed_plot(rows, Path(out) / "tradeoff_peers_limbed.png", scene.name, what)]
     return result
 
 
@@ -487,10 +618,10 @@ def limbed_table(rows, loaded):
                      pct(r["tip_loaded"]), f"{pct(r.get('tip_unloaded'))} ({r.get('tip_unloaded_handle', '-')})",
                      f"{r['error_x_ms'] * 100:.3g}"])
     return format_table(["model", "DOFs", "ms/step", "RMS err vs our FEM %", "RMS err vs MuJoCo full %",
-                         f"tip err {loaded} %", "worst unloaded tip err %", "err x ms (% ms)"], body)
+                         f"tip err {loaded} % (worst)", "worst unloaded tip err %", "err x ms (% ms)"], body)
 
 
-def limbed_plot(rows, path, name):
+def limbed_plot(rows, path, name, load="one arm's tip force"):
     """Two log-log panels, ms/step vs RMS displacement error against our full FEM and
     against MuJoCo's full flex; MuJoCo squares, ours circles, every point labelled."""
     from .plotting import _plt, _save
@@ -517,5 +648,5 @@ def limbed_plot(rows, path, name):
     axes[0].scatter([], [], marker="o", color="tab:blue", label="mdss reduced (DOFs)")
     axes[0].scatter([], [], marker="o", color="k", label="mdss full-space FEM")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{name}: static equilibrium under gravity + one arm's tip force, MuJoCo flex vs mdss", fontsize=11)
+    fig.suptitle(f"{name}: static equilibrium under gravity + {load}, MuJoCo flex vs mdss", fontsize=11)
     return _save(fig, path)

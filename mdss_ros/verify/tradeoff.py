@@ -34,7 +34,9 @@ box beam the peer comparison with MuJoCo's flex (verify/peers.py) runs in the sa
 report (DIR/tradeoff_peers.png); for a limbed body (pinned on one face of its bounding box,
 handles, a wrench in the timeline: msg_scenes/star_limbs.yaml) the static comparison of
 verify/peers_limbed.py does (DIR/tradeoff_peers_limbed.png). `--set tradeoff.peers_only=true`
-runs the peer comparison alone (no sweep, no ground-truth run).
+runs the peer comparison alone (no sweep, no ground-truth run). The limbed comparison's
+large-deformation case: `--set tradeoff.tip_force_scale=12 --set tradeoff.side_force=15`
+(star_limbs: arm0 turns ~54 degrees up, arm2 ~29 degrees sideways in our FEM statics).
 
 --set KEY=VALUE: keys `tradeoff.NAME` change a study setting (SETTINGS); other keys
 override the scene (the base configuration every variant starts from).
@@ -63,6 +65,8 @@ SETTINGS = {
     "peers_only": False,              # only the peer comparison: skip the sweep and its ground truth
     "timing_rounds": 3,               # round-robin re-timing passes over all configurations
     "timing_steps": 60,               # steps per configuration and pass (after warm-up)
+    "tip_force_scale": 1.0,           # limbed peers: the static tip force x this (large deformation: ~10)
+    "side_force": 0.0,                # limbed peers: N sideways on a second arm (0: none)
 }
 QUICK = {"horizon": 1.0, "variants": "quick", "timing_rounds": 2, "timing_steps": 30}
 
@@ -481,8 +485,9 @@ def peer_comparison(scene_src, scene, base, cfg, out, quick, log):
     if is_clamped_box_beam(scene):
         return dict(beam_peer_comparison(scene_src, base, out, **kw), kind="beam")
     if is_limbed_scene(scene):
-        return dict(limbed_peer_comparison(scene_src, base, out, timing_steps=int(cfg["timing_steps"]), **kw),
-                    kind="limbed")
+        return dict(limbed_peer_comparison(scene_src, base, out, timing_steps=int(cfg["timing_steps"]),
+                                           tip_force_scale=float(cfg["tip_force_scale"]),
+                                           side_force=float(cfg["side_force"]), **kw), kind="limbed")
     return {"skipped": "the peer comparison needs a clamped box beam (box mesh, x = 0 face pinned) or a limbed "
                        "body (pins on one face of its bounding box, two or more handles, a wrench in the timeline)"}
 
