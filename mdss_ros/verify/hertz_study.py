@@ -60,7 +60,7 @@ HERTZ = {
     "force_fractions": [0.4, 0.6, 0.8, 1.0],      # of F(a_ref): contact radius 0.74 .. 1.0 a_ref
     "fixed_force_fraction": 0.6,   # Fig. 5: indentation at this fraction of the largest force
     "levels": [1.5, 2, 3, 4],      # a_ref / h of the full-space meshes
-    "reduced_levels": [2, 3],      # a_ref / h of the reduced models
+    "reduced_levels": [2, 3, 4],   # a_ref / h of the reduced models (4: first within 5 % at every force)
     "fine_radius": 2.0,            # fine zone half-width / a_ref
     "growth": 1.5,                 # graded_block growth factor of the cell sizes
     "cell_coarse": 0.5,            # m, far-field cell
