@@ -129,31 +129,41 @@ def mujoco_flex_beam(mj, geo, dof, timing_steps=60, warmup=5, settle_damping=0.0
         mj.set_mju_user_warning(previous)
 
 
-def _flex_beam_run(mj, geo, dof, timing_steps, warmup, settle_damping, settle_max, warnings):
-    model = mj.MjModel.from_xml_string(flex_beam_xml(geo, dof, geo["beta"]))
-    data = mj.MjData(model)
-    mj.mj_forward(model, data)
-    X = np.array(data.flexvert_xpos)
-
+def mujoco_step_timer(mj, model, data, timing_steps, warmup):
+    """timer(steps=timing_steps): median ms of `steps` mj_step calls after `warmup`
+    untimed ones, continuing the motion of `data`."""
     def timer(steps=timing_steps):
-        """Median ms of `steps` mj_step calls (after warm-up), continuing the motion."""
         ms = np.empty(warmup + steps)
         for k in range(len(ms)):
             t0 = time.perf_counter()
             mj.mj_step(model, data)
             ms[k] = 1e3 * (time.perf_counter() - t0)
         return float(np.median(ms[warmup:]))
+    return timer
+
+
+def mujoco_settle(mj, model, data, settle_max):
+    """Step until every velocity is below 1e-9 (checked every 10 steps) or settle_max
+    steps. Returns (settled, steps)."""
+    k = 0
+    for k in range(1, settle_max + 1):
+        mj.mj_step(model, data)
+        if k % 10 == 0 and float(np.abs(data.qvel).max()) < 1e-9:
+            return True, k
+    return False, k
+
+
+def _flex_beam_run(mj, geo, dof, timing_steps, warmup, settle_damping, settle_max, warnings):
+    model = mj.MjModel.from_xml_string(flex_beam_xml(geo, dof, geo["beta"]))
+    data = mj.MjData(model)
+    mj.mj_forward(model, data)
+    X = np.array(data.flexvert_xpos)
+    timer = mujoco_step_timer(mj, model, data, timing_steps, warmup)
     step_ms = timer()
     ok = bool(np.all(np.isfinite(data.qpos)))
     static = mj.MjModel.from_xml_string(flex_beam_xml(geo, dof, settle_damping))
     sd = mj.MjData(static)
-    settled = False
-    k = 0
-    for k in range(1, settle_max + 1):
-        mj.mj_step(static, sd)
-        if k % 10 == 0 and float(np.abs(sd.qvel).max()) < 1e-9:
-            settled = True
-            break
+    settled, k = mujoco_settle(mj, static, sd, settle_max)
     x = np.array(sd.flexvert_xpos)
     return {"dof": dof, "nv": int(model.nv), "nodes": int(model.nflexnode) or int(model.nflexvert),
             "step_ms": step_ms, "finite": ok and bool(np.all(np.isfinite(x))),
@@ -348,16 +358,7 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
         log(f"peers: {label}: {row['dofs']} DOFs, {row['step_ms']:.3f} ms/step, sag {row['sag']:.5g} m "
             f"[{time.perf_counter() - t0:.1f} s]")
 
-    # Round-robin re-timing (alternating order): a load spike from other processes hits
-    # MuJoCo and ours alike; each row keeps the smallest of its pass medians.
-    timed = [r for r in rows if "_timer" in r]
-    for p in range(timing_rounds):
-        for r in (timed if p % 2 == 0 else timed[::-1]):
-            r.setdefault("step_ms_passes", []).append(r["_timer"]())
-    for r in timed:
-        r["step_ms_first"] = r["step_ms"]
-        r["step_ms"] = min(r["step_ms_passes"] + [r["step_ms"]])
-        del r["_timer"]
+    retime_round_robin(rows, timing_rounds)
     log(f"peers: re-timed every row in {timing_rounds} round-robin passes")
     for row in rows:
         if "failed" in row:
@@ -373,6 +374,20 @@ def beam_peer_comparison(scene_src, base_overrides, out, quick=False, log=print,
     result["table"] = peer_table(rows, ref)
     result["plots"] = [peer_plot(rows, ref, Path(out) / "tradeoff_peers.png")]
     return result
+
+
+def retime_round_robin(rows, rounds):
+    """Re-time every row that has a "_timer" in `rounds` round-robin passes, alternating
+    the order: a load spike from other processes hits MuJoCo and ours alike. Each row keeps
+    the smallest of its pass medians ("step_ms"; all passes in "step_ms_passes")."""
+    timed = [r for r in rows if "_timer" in r]
+    for p in range(rounds):
+        for r in (timed if p % 2 == 0 else timed[::-1]):
+            r.setdefault("step_ms_passes", []).append(r["_timer"]())
+    for r in timed:
+        r["step_ms_first"] = r["step_ms"]
+        r["step_ms"] = min(r["step_ms_passes"] + [r["step_ms"]])
+        del r["_timer"]
 
 
 METRIC_NAMES = {"err_closed_form": "|sag error| vs the closed form",

@@ -73,7 +73,8 @@ import numpy as np
 
 from ..precompute import PrecomputeCache
 from ..scene import load_scene
-from .peers import MUJOCO_VERSION, compare_to, match_vertices, median_ms_from_rest, mujoco_module
+from .peers import (MUJOCO_VERSION, compare_to, match_vertices, median_ms_from_rest, mujoco_module,
+                    mujoco_settle, mujoco_step_timer, retime_round_robin)
 from .reduced_reports import ReportError, format_table
 
 METRIC_NAMES = {
@@ -291,15 +292,7 @@ def _flex_limbed_run(mj, setup, dof, cells, f_ext, timing_steps, warmup, settle_
     data = mj.MjData(model)
     mj.mj_forward(model, data)
     X = np.array(data.flexvert_xpos)
-
-    def timer(steps=timing_steps):
-        """Median ms of `steps` mj_step calls (after warm-up), continuing the motion."""
-        ms = np.empty(warmup + steps)
-        for k in range(len(ms)):
-            t0 = time.perf_counter()
-            mj.mj_step(model, data)
-            ms[k] = 1e3 * (time.perf_counter() - t0)
-        return float(np.median(ms[warmup:]))
+    timer = mujoco_step_timer(mj, model, data, timing_steps, warmup)
     step_ms = timer()
     out = {"dof": dof, "cells": list(cells) if cells else None, "nv": int(model.nv),
            "nodes": int(model.nflexnode) or int(model.nflexvert), "step_ms": step_ms, "X": X, "x": None,
@@ -314,12 +307,7 @@ def _flex_limbed_run(mj, setup, dof, cells, f_ext, timing_steps, warmup, settle_
         mj.mj_forward(static, sd)
         qfrc = generalized_forces(mj, static, sd, f_ext)
         sd.qfrc_applied[:] = qfrc
-        settled, k = False, 0
-        for k in range(1, settle_max + 1):
-            mj.mj_step(static, sd)
-            if k % 10 == 0 and float(np.abs(sd.qvel).max()) < 1e-9:
-                settled = True
-                break
+        settled, k = mujoco_settle(mj, static, sd, settle_max)
         out.update(x=np.array(sd.flexvert_xpos), settled=settled, settle_steps=k,
                    final_max_qvel=float(np.abs(sd.qvel).max()),
                    finite=out["finite"] and bool(np.all(np.isfinite(sd.flexvert_xpos))))
@@ -540,14 +528,7 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         log(f"peers (limbed): {label}: {row['dofs']} DOFs, {row['domains']} domains, {row['step_ms']:.3f} ms/step "
             f"(build {build_s:.1f} s) [{time.perf_counter() - t0:.1f} s]")
 
-    timed = [r for r in rows if "_timer" in r]
-    for p in range(timing_rounds):
-        for r in (timed if p % 2 == 0 else timed[::-1]):
-            r.setdefault("step_ms_passes", []).append(r["_timer"]())
-    for r in timed:
-        r["step_ms_first"] = r["step_ms"]
-        r["step_ms"] = min(r["step_ms_passes"] + [r["step_ms"]])
-        del r["_timer"]
+    retime_round_robin(rows, timing_rounds)
     log(f"peers (limbed): re-timed every row in {timing_rounds} round-robin passes")
 
     for row in rows:
