@@ -279,3 +279,11 @@ def test_watched_surface_positions_equal_general_path():
     sim.step(5)
     ids = sim.body.surface.vertex_ids
     np.testing.assert_allclose(sim.surface_positions(), sim.model.positions_of(ids.copy()), atol=1e-14)
+
+
+def test_cross_matches_numpy_for_vectors_and_stacks():
+    from mdss_ros.rotations import cross
+    rng = np.random.default_rng(0)
+    for sa, sb in [((3,), (3,)), ((5, 3), (3,)), ((3,), (5, 3)), ((5, 3), (5, 3)), ((1, 5, 3), (4, 1, 3))]:
+        a, b = rng.standard_normal(sa), rng.standard_normal(sb)
+        assert np.array_equal(cross(a, b), np.cross(a, b))

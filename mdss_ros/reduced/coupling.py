@@ -320,7 +320,8 @@ class TwoPhaseProjection:
             self._KJ = np.empty((len(self.entry_vertex), 3, s_max))
             self._f_sum = np.empty((len(self.ptr) - 1, 3))
         KJ, f_sum = self._KJ, self._f_sum
-        accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
+        accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries,
+                      KJ, f_sum)
         for k, rows in enumerate(self.domain_rows):
             sk, ok = self.sizes[k], self.offsets[k]
             G[ok:ok + sk] += J[rows, :, :sk].reshape(-1, sk).T @ f_sum[rows].ravel()

@@ -32,7 +32,7 @@ from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
-from ..rotations import exp_so3, quat_from_matrix
+from ..rotations import cross, exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
 from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
@@ -411,11 +411,11 @@ class ReducedModel:
         if center is None:
             center = (self.vertex_mass[:, None] * self.vertex_positions()).sum(0) / self.vertex_mass.sum()
         mv = self.movable
-        self.frames.v[mv] = linear + np.cross(angular, self.frames.c[mv] - center)
+        self.frames.v[mv] = linear + cross(angular, self.frames.c[mv] - center)
         self.frames.w[mv] = angular
         self.frames.w_prev[mv] = angular
         xf = self.x_full
-        self.v_full = np.where(self.is_full_vertex[:, None], linear + np.cross(angular, xf - center), 0.0)
+        self.v_full = np.where(self.is_full_vertex[:, None], linear + cross(angular, xf - center), 0.0)
         self.v_full[self.body.pinned] = 0.0
 
     def get_Q(self):
@@ -475,14 +475,14 @@ class ReducedModel:
             mv = self.movable
             rho = Rg @ (frames0.c[mv] - C + dt * v[mv]).T
             frames.c[mv] = C1 + rho.T
-            frames.v[mv] = V + np.cross(W, rho.T) + v[mv] @ Rg.T
+            frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
             frames.w[mv] = W + w[mv] @ Rg.T
             for k in np.flatnonzero(mv):        # loop over domains, not vertices
                 frames.R[k] = _orthonormalise(Rg @ exp_so3(dt * w[k]) @ frames0.R[k])
             if self.F:
                 rho_f = (x0 - C + dt * v_full) @ Rg.T
                 x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
-                v_full = np.where(self.is_full_vertex[:, None], V + np.cross(W, rho_f) + v_full @ Rg.T, 0.0)
+                v_full = np.where(self.is_full_vertex[:, None], V + cross(W, rho_f) + v_full @ Rg.T, 0.0)
             else:
                 x_full = x0
         # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
@@ -491,8 +491,8 @@ class ReducedModel:
         for k in np.flatnonzero(self.movable):
             dom = self.subspace[k]
             Rp = exp_so3(dt * frames0.w[k]) @ frames0.R[k]
-            h = Rp @ dom.inertia(q0[k]) @ Rp.T @ (frames.w[k] if gm is None else gm[2] + w[k])
-            frames.w[k] = np.linalg.solve(frames.R[k] @ dom.inertia(q[k]) @ frames.R[k].T, h)
+            h = Rp @ self._inertia(k, q0[k]) @ Rp.T @ (frames.w[k] if gm is None else gm[2] + w[k])
+            frames.w[k] = np.linalg.solve(frames.R[k] @ self._inertia(k, q[k]) @ frames.R[k].T, h)
         if gm is not None:
             # Carrying the state by exp(dt W) also turns its angular momentum by that
             # rotation; where L is not parallel to W (products of inertia) this is a
@@ -502,12 +502,24 @@ class ReducedModel:
             C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full)
             dW = np.linalg.solve(I1, gm[3] - L1)
             self._dW = float(np.linalg.norm(dW))
-            frames.v[mv] += np.cross(dW, frames.c[mv] - C1)
+            frames.v[mv] += cross(dW, frames.c[mv] - C1)
             frames.w[mv] += dW
             if self.F:
-                v_full = np.where(self.is_full_vertex[:, None], v_full + np.cross(dW, x_full - C1), v_full)
+                v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
         frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
+
+    def _inertia(self, k, q):
+        """Subspace domain k's inertia at q (domains.inertia), remembered for the last two q
+        arrays it was asked about: a step asks for the same few states several times, and
+        q arrays are never changed in place (every step and set_state make new ones)."""
+        memo = self.__dict__.setdefault("_inertia_memo", {})
+        for q_seen, I in memo.get(k, ()):
+            if q_seen is q:
+                return I
+        I = self.subspace[k].inertia(q)
+        memo[k] = (memo.get(k, ())[-1:]) + ((q, I),)
+        return I
 
     def _global_motion(self):
         """(C, V, W, L): mass centre, velocity, angular velocity and angular momentum of
@@ -530,11 +542,11 @@ class ReducedModel:
         C = ((m_d[:, None] * fr.c).sum(0) + (m_f[:, None] * x_f).sum(0)) / m
         V = ((m_d[:, None] * fr.v).sum(0) + (m_f[:, None] * v_f).sum(0)) / m
         rho, rho_f = fr.c - C, x_f - C
-        I_d = fr.R @ np.stack([dom.inertia(qk) for dom, qk in zip(self.subspace, q)]) @ fr.R.transpose(0, 2, 1)
+        I_d = fr.R @ np.stack([self._inertia(k, qk) for k, qk in enumerate(q)]) @ fr.R.transpose(0, 2, 1)
         I = (I_d.sum(0) + ((m_d * (rho * rho).sum(1)).sum() + (m_f * (rho_f * rho_f).sum(1)).sum()) * np.eye(3)
              - np.einsum("i,ij,ik->jk", m_d, rho, rho) - np.einsum("i,ij,ik->jk", m_f, rho_f, rho_f))
-        L = (np.cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)
-             + np.cross(rho_f, m_f[:, None] * (v_f - V)).sum(0))
+        L = (cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)
+             + cross(rho_f, m_f[:, None] * (v_f - V)).sum(0))
         return C, V, L, I
 
     def _rigid_Q(self, gm, angular_only=False):
@@ -546,9 +558,9 @@ class ReducedModel:
             o = self.sub_offsets[k] + dom.r
             Q[o + 3:o + 6] = W
             if not angular_only:
-                Q[o:o + 3] = V + np.cross(W, self.frames.c[k] - C)
+                Q[o:o + 3] = V + cross(W, self.frames.c[k] - C)
         if self.F and not angular_only:
-            Q[self.S:] = self._full_free(V + np.cross(W, self.x_full - C))
+            Q[self.S:] = self._full_free(V + cross(W, self.x_full - C))
         return Q
 
     def _global_fictitious(self, gm):
@@ -559,9 +571,9 @@ class ReducedModel:
         F = np.zeros(self.n_gen)
         for k, dom in enumerate(self.subspace):
             o = self.sub_offsets[k] + dom.r
-            F[o:o + 3] = -dom.total_mass * np.cross(W, np.cross(W, self.frames.c[k] - C))
+            F[o:o + 3] = -dom.total_mass * cross(W, cross(W, self.frames.c[k] - C))
         if self.F:
-            f = -self.vertex_mass[:, None] * np.cross(W, np.cross(W, self.x_full - C))
+            f = -self.vertex_mass[:, None] * cross(W, cross(W, self.x_full - C))
             F[self.S:] = self._full_free(f)
         return F
 
@@ -648,7 +660,7 @@ class ReducedModel:
         for k, dom in enumerate(self.subspace):
             ids = dom.vertices
             x = self._domain_world(k, np.arange(len(ids)), self.q, self.frames)
-            out[ids] = (self.frames.v[k] + np.cross(self.frames.w[k], x - self.frames.c[k])
+            out[ids] = (self.frames.v[k] + cross(self.frames.w[k], x - self.frames.c[k])
                         + (dom.U @ self.qd[k]).reshape(-1, 3) @ self.frames.R[k].T)
         return out
 
@@ -818,7 +830,7 @@ class ReducedModel:
             if dom.movable:
                 x = self._domain_world(k, loc, q, frames)
                 Fext[o + dom.r:o + dom.r + 3] += fk.sum(0)
-                Fext[o + dom.r + 3:o + dom.r + 6] = np.cross(x - frames.c[k], fk).sum(0)
+                Fext[o + dom.r + 3:o + dom.r + 6] = cross(x - frames.c[k], fk).sum(0)
         if self.F:
             Fext[self.S:] = self._ff_mass * g[self._ff_axis]
             dof = self.ff_pattern.free_dof[3 * loaded[:, None] + np.arange(3)]     # (k, 3), -1: not full-space
@@ -837,7 +849,7 @@ class ReducedModel:
             if dom.movable:
                 R = exp_so3(self.dt * frames.w[k]) @ frames.R[k] if predicted else frames.R[k]
                 M[o + dom.r:o + dom.r + 3, o + dom.r:o + dom.r + 3] = dom.total_mass * np.eye(3)
-                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ dom.inertia(self.q[k]) @ R.T
+                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ self._inertia(k, self.q[k]) @ R.T
         return M
 
     def _fictitious_matrices(self, frames):
@@ -994,7 +1006,7 @@ class ReducedModel:
                 blocks.append((sel, o + np.arange(dom.r), np.einsum("li,lib->lb", n @ self.frames.R[k], dom.U3[loc])))
                 if dom.movable:
                     blocks.append((sel, o + dom.r + np.arange(6),
-                                   np.hstack([n, np.cross(xv[sel] - self.frames.c[k], n)])))
+                                   np.hstack([n, cross(xv[sel] - self.frames.c[k], n)])))
             else:
                 dofs = self.full_dof_of_vertex[verts[sel]]
                 ok = dofs >= 0
@@ -1029,7 +1041,7 @@ class ReducedModel:
         self._contact_rigid = np.zeros(len(phi))          # dt n . (rigid velocity) per row
         if gm is not None:
             Cg, Vg, Wg = gm[:3]
-            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + np.cross(Wg, xv - Cg))
+            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + cross(Wg, xv - Cg))
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
         return verts, C, phi_eff, normals, which
@@ -1066,7 +1078,7 @@ class ReducedModel:
             C, V, W, L = gm
             # Torque of the loads about the mass centre; uniform gravity has none.
             loaded, f_loaded = sparse_loads(f_ext)
-            tau = np.cross(self.positions_of(loaded) - C, f_loaded).sum(0)
+            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0)
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
         self._dW = 0.0
         self._indefinite = False
@@ -1293,7 +1305,8 @@ class ReducedModel:
                 kinetic += 0.5 * float(qd @ qd)
                 if dom.movable:
                     w = fr.R[k].T @ fr.w[k]
-                    kinetic += (0.5 * dom.total_mass * float(fr.v[k] @ fr.v[k]) + 0.5 * float(w @ dom.inertia(q) @ w)
+                    kinetic += (0.5 * dom.total_mass * float(fr.v[k] @ fr.v[k])
+                                + 0.5 * float(w @ self._inertia(k, q) @ w)
                                 + float(w @ np.einsum("a,b,abk->k", q, qd, dom.tensors.W)))
                     speed = max(speed, float(np.linalg.norm(fr.v[k]) + np.linalg.norm(fr.w[k])
                                              * (rho + sigma * np.linalg.norm(q)) + sigma * np.linalg.norm(qd)))
