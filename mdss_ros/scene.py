@@ -60,8 +60,8 @@ def _posint(value, where):
     return value
 
 
-def _posint_or_null(value, where):
-    return None if value is None else _posint(value, where)
+def _blas_threads(value, where):
+    return value if value is None or value == "auto" else _posint(value, where)
 
 
 def _choice(*options):
@@ -112,8 +112,10 @@ SCHEMA = {
             "fictitious": (_choice("explicit", "implicit"), "explicit"),
         },
         "solver": (_choice("auto", "pardiso", "cholmod", "splu"), "auto"),
-        # BLAS threads while stepping (mdss_ros/threads.py); null = the library's default.
-        "blas_threads": (_posint_or_null, 1),
+        # BLAS threads while stepping (mdss_ros/threads.py); null = the library's default;
+        # auto = 1 for reduced models (small GEMMs), the default for full-space ones (their
+        # sparse factorisation gains from every core).
+        "blas_threads": (_blas_threads, "auto"),
         "full_space_domains": (list, []),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),

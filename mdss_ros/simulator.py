@@ -58,7 +58,8 @@ class Simulator:
         if hasattr(self.model, "watch"):
             self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
         self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
-        self._blas_threads = BlasThreads(scene["model"]["blas_threads"])
+        n = scene["model"]["blas_threads"]
+        self._blas_threads = BlasThreads((1 if self.model.kind == "reduced" else None) if n == "auto" else n)
         self.reset()
 
     # ----------------------------------------------------------------- state

@@ -111,3 +111,5 @@ def test_steps_run_with_the_scene_blas_threads_and_restore_them():
     with pytest.raises(SceneError, match="blas_threads"):
         load_scene("cantilever", {"model.blas_threads": 0})
     assert load_scene("cantilever", {"model.blas_threads": None})["model"]["blas_threads"] is None
+    sim = Simulator("cantilever", {"body.mesh.cell": 0.05, "model.kind": "full"})
+    assert sim._blas_threads.n is None           # auto: a full-space model keeps every core
