@@ -9,7 +9,7 @@ session note). So a reduced model steps with `model.blas_threads` BLAS threads (
 and the library's setting is left alone everywhere else (precompute keeps its threads). A
 full-space model keeps them while stepping too ("auto": the library's): its sparse
 factorisation (MKL PARDISO, which threadpoolctl also counts as BLAS) took 9.7 s instead of
-about 4.6 s on armadillo_class's 176K DOFs with one thread. numba's own pool is not affected.
+5.4 s on armadillo_class's 176K DOFs with one thread. numba's own pool is not affected.
 """
 import contextlib
 
