@@ -65,3 +65,36 @@ def test_coupling_entries_group_by_domain_pair():
 def test_as_slice():
     assert as_slice(np.array([3, 4, 5])) == slice(3, 6)
     assert isinstance(as_slice(np.array([3, 5])), np.ndarray)
+
+
+def test_two_phase_plus_full_block_equals_the_per_element_product_beside_full_space_vertices():
+    """Mixed systems: subspace pairs two-phase, subspace-full pairs by project_coupling_full,
+    forces by project_forces; together they must equal project_coupling."""
+    from mdss_ros.reduced.coupling import project_coupling_full, project_forces
+    sub, elem, J, cols, K, f, sizes, offsets = _random_coupling(7)
+    n_I = len(sub)
+    S = int(sizes.sum())
+    full = np.zeros(n_I, bool)
+    full[-6:] = True                                   # the last vertices are full-space, ordered last
+    full[-1] = True
+    icol = np.full((n_I, 3), -1, dtype=np.int64)
+    F_I = 0
+    for a in np.flatnonzero(full)[:-1]:                # the very last one is pinned: no DOFs
+        icol[a] = 3 * F_I + np.arange(3)
+        F_I += 1
+    J[full] = 0.0
+    cols[full] = -1
+    J[full, :, :3] = np.eye(3)
+    for a in np.flatnonzero(full):
+        cols[a, :3] = S + icol[a] if icol[a, 0] >= 0 else -1
+    cols[full, 3:] = -1
+    sub = np.where(full, -1, sub)
+    G_ref, A_ref, B_ref = np.zeros(S + 3 * F_I), np.zeros((S, S)), np.zeros((S, 3 * F_I))
+    project_coupling(elem, f, K, J, cols, full, icol, G_ref, A_ref, B_ref)
+    G, A, B = np.zeros(S + 3 * F_I), np.zeros((S, S)), np.zeros((S, 3 * F_I))
+    project_forces(elem, f, J, cols, G)
+    TwoPhaseProjection(elem, sub, sizes, offsets).add(f, K, J, None, A)
+    project_coupling_full(elem, K, J, cols, full, icol, B)
+    assert np.allclose(G, G_ref, rtol=1e-12, atol=1e-12)
+    assert np.allclose(A, A_ref, rtol=1e-12, atol=1e-11)
+    assert np.allclose(B, B_ref, rtol=1e-12, atol=1e-11) and np.abs(B).max() > 0

@@ -134,6 +134,35 @@ def project_coupling(elem, f_e, K_e, J, cols, is_full, icol, G, A_ss, A_sI):
 
 
 @njit(cache=True)
+def project_coupling_full(elem, K_e, J, cols, is_full, icol, A_sI):
+    """A_sI += J_a^T K_e[a, b] for every subspace vertex a and full-space vertex b of a
+    coupling element (J_b = I3 on b's own DOFs): the block between subspace DOFs and
+    full-space interface DOFs. Arguments as in project_coupling."""
+    n_c, k = elem.shape
+    s_max = J.shape[2]
+    for e in range(n_c):
+        for a in range(k):
+            la = elem[e, a]
+            if is_full[la]:
+                continue
+            for b in range(k):
+                lb = elem[e, b]
+                if not is_full[lb]:
+                    continue
+                for t in range(3):
+                    col = icol[lb, t]
+                    if col < 0:
+                        continue                 # a pinned full-space DOF
+                    k0 = K_e[e, 3 * a, 3 * b + t]
+                    k1 = K_e[e, 3 * a + 1, 3 * b + t]
+                    k2 = K_e[e, 3 * a + 2, 3 * b + t]
+                    for s in range(s_max):
+                        row = cols[la, s]
+                        if row >= 0:
+                            A_sI[row, col] += J[la, 0, s] * k0 + J[la, 1, s] * k1 + J[la, 2, s] * k2
+
+
+@njit(cache=True)
 def project_forces(elem, f_e, J, cols, G):
     """Only G += J^T f (for energy-only evaluations and explicit forces)."""
     n_c, k = elem.shape
@@ -218,21 +247,26 @@ def coupling_entries(elem, vertex_sub):
     an element couples, ordered by (domain of a, l, a) so that each domain pair's entries
     are one contiguous block.
 
-    elem (n_c, k) interface-vertex ids; vertex_sub (n_I,) subspace domain of each.
-    Returns (entry_vertex (n_e,), entry_dom (n_e,), pair_entry (n_c, k, k): the entry of
-    (a, domain of b) for every vertex pair of every element, vertex_entries (n_I, D): the
-    entries of each vertex, -1 padded).
+    elem (n_c, k) interface-vertex ids; vertex_sub (n_I,) subspace domain of each (-1 for a
+    full-space vertex). Returns (entry_vertex (n_e,), entry_dom (n_e,), pair_entry
+    (n_c, k, k): the entry of (a, domain of b) for every vertex pair of every element, -1
+    where a or b is full-space, vertex_entries (n_I, D): the entries of each vertex, -1
+    padded).
     """
     n_c, k = elem.shape
     n_I = len(vertex_sub)
-    if n_c == 0:
+    if n_c == 0 or vertex_sub.max() < 0:
         z = np.zeros(0, dtype=np.int64)
-        return z, z, np.zeros((0, k, k), dtype=np.int64), np.full((n_I, 1), -1, dtype=np.int64)
+        return z, z, np.full((n_c, k, k), -1, dtype=np.int64), np.full((n_I, 1), -1, dtype=np.int64)
     nd = int(vertex_sub.max()) + 1
     a_ids = np.repeat(elem, k, axis=1).ravel()                 # (n_c k k,) vertex a of each pair
     b_dom = vertex_sub[np.tile(elem, (1, k)).ravel()]          # domain of b
+    # Pairs with a full-space vertex (vertex_sub < 0) have no entry: see project_coupling_full.
+    valid = (vertex_sub[a_ids] >= 0) & (b_dom >= 0)
     pair_key = (vertex_sub[a_ids] * nd + b_dom) * n_I + a_ids
-    keys, pair_entry = np.unique(pair_key, return_inverse=True)
+    keys, inverse = np.unique(pair_key[valid], return_inverse=True)
+    pair_entry = np.full(len(a_ids), -1, dtype=np.int64)
+    pair_entry[valid] = inverse.ravel()
     entry_vertex, entry_dom = keys % n_I, (keys // n_I) % nd
     counts = np.bincount(entry_vertex, minlength=n_I)
     by_vertex = np.argsort(entry_vertex, kind="stable")
@@ -271,6 +305,8 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
             for b in range(k):
                 lb = elem[e, b]
                 en = pair_entry[e, a, b]
+                if en < 0:
+                    continue                 # a or b full-space: project_coupling_full
                 for i in range(3):
                     k0 = we * K_e[e, 3 * a + i, 3 * b]
                     k1 = we * K_e[e, 3 * a + i, 3 * b + 1]
@@ -312,7 +348,8 @@ class TwoPhaseProjection:
     def add(self, f_e, K_e, J, G, A_ss, weights=None):
         """f_e (n_c, k, 3), K_e (n_c, 3k, 3k) world-frame element forces and stiffness,
         J (n_I, 3, s_max), weights (n_c,) or None (all 1); G (S,) and A_ss (S, S) are
-        added to."""
+        added to (G None: forces not projected). Only subspace-subspace vertex pairs: with
+        full-space vertices, project_forces and project_coupling_full do the rest."""
         s_max = J.shape[2]
         if weights is None:
             weights = np.ones(len(self.elem))
@@ -322,7 +359,7 @@ class TwoPhaseProjection:
         KJ, f_sum = self._KJ, self._f_sum
         accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries,
                       KJ, f_sum)
-        for k, rows in enumerate(self.domain_rows):
+        for k, rows in enumerate(self.domain_rows if G is not None else []):
             sk, ok = self.sizes[k], self.offsets[k]
             G[ok:ok + sk] += J[rows, :, :sk].reshape(-1, sk).T @ f_sum[rows].ravel()
         for k, l, e0, e1, rows in self.groups:

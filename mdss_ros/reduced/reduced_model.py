@@ -34,7 +34,7 @@ from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
 from ..rotations import cross, exp_so3, quat_from_matrix
 from .block_cholesky import BlockCholesky
-from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling, project_coupling_left,
+from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, _orthonormalise, fictitious_forces
@@ -751,7 +751,10 @@ class ReducedModel:
         elif two_phase:
             self._two_phase().add(f_c, K_c, J, G, K_ss, w_c)
         elif want_hessian:
-            project_coupling(self.c_elem, f_c, K_c, J, self.J_cols, self.J_full, self.J_icol, G, K_ss, K_sI)
+            # Beside full-space domains: subspace pairs two-phase, subspace-full pairs into A_sI.
+            project_forces(self.c_elem, f_c, J, self.J_cols, G)
+            self._two_phase().add(f_c, K_c, J, None, K_ss)
+            project_coupling_full(self.c_elem, K_c, J, self.J_cols, self.J_full, self.J_icol, K_sI)
             if self.F:
                 K_f[self.n_full_elems:] = self._coupling_full_block(K_c)
                 K_ff = assemble_matrix(self.ff_pattern, K_f)
