@@ -57,10 +57,14 @@ def interface_jacobian(U, r_local, row_dom, r, movable, q, R, c, J, x):
             p0 += U[la, 0, t] * qt
             p1 += U[la, 1, t] * qt
             p2 += U[la, 2, t] * qt
-        d = np.empty(3)
+        # d = R p = x - c, kept in scalars: no allocation per vertex in the parallel loop.
+        d0 = R[k, 0, 0] * p0 + R[k, 0, 1] * p1 + R[k, 0, 2] * p2
+        d1 = R[k, 1, 0] * p0 + R[k, 1, 1] * p1 + R[k, 1, 2] * p2
+        d2 = R[k, 2, 0] * p0 + R[k, 2, 1] * p1 + R[k, 2, 2] * p2
+        x[la, 0] = c[k, 0] + d0
+        x[la, 1] = c[k, 1] + d1
+        x[la, 2] = c[k, 2] + d2
         for i in range(3):
-            d[i] = R[k, i, 0] * p0 + R[k, i, 1] * p1 + R[k, i, 2] * p2
-            x[la, i] = c[k, i] + d[i]
             for t in range(rk):
                 J[la, i, t] = R[k, i, 0] * U[la, 0, t] + R[k, i, 1] * U[la, 1, t] + R[k, i, 2] * U[la, 2, t]
             for t in range(rk, s_max):
@@ -69,12 +73,12 @@ def interface_jacobian(U, r_local, row_dom, r, movable, q, R, c, J, x):
             for i in range(3):
                 J[la, i, rk + i] = 1.0
             # -[d]x: rows (0, d2, -d1), (-d2, 0, d0), (d1, -d0, 0)
-            J[la, 0, rk + 4] = d[2]
-            J[la, 0, rk + 5] = -d[1]
-            J[la, 1, rk + 3] = -d[2]
-            J[la, 1, rk + 5] = d[0]
-            J[la, 2, rk + 3] = d[1]
-            J[la, 2, rk + 4] = -d[0]
+            J[la, 0, rk + 4] = d2
+            J[la, 0, rk + 5] = -d1
+            J[la, 1, rk + 3] = -d2
+            J[la, 1, rk + 5] = d0
+            J[la, 2, rk + 3] = d1
+            J[la, 2, rk + 4] = -d0
 
 
 @njit(cache=True, inline="always")
@@ -91,7 +95,10 @@ def _k_times_j(K_e, e, a, b, J, cols, lb, T):
 
 @njit(cache=True)
 def project_coupling(elem, f_e, K_e, J, cols, is_full, icol, G, A_ss, A_sI):
-    """Accumulate J^T f and J^T K J of coupling elements.
+    """Accumulate J^T f and J^T K J of coupling elements, one element vertex pair at a
+    time. The step uses TwoPhaseProjection (+ project_forces and project_coupling_full
+    beside full-space domains), which computes the same sums with fewer flops; this
+    direct form is the tests' reference for them.
 
     elem (n_c, k): index of each element vertex in the interface-vertex arrays.
     f_e (n_c, k, 3), K_e (n_c, 3k, 3k): world-frame element forces and stiffness.
