@@ -39,6 +39,14 @@ remove energy the positions hold (elastic or potential energy above the budget):
 sub-step stays rejected. (It does not pay back drift accepted earlier; it stops its growth.)
 The first attempt that passes is kept ("recovered"); soft signs alone stop the ladder at
 SOFT_MAX_SUBSTEPS sub-steps.
+Inverted elements left at the end of `untangle_after` accepted steps in a row (a tangle the
+model holds in place rather than a transient) are untangled on a reduced model
+(ReducedModel.untangle: modal coordinates and frames shrunk towards a rigid placement of the
+rest shape, by the least factor found that leaves none; kept only if that creates no energy
+beyond half the drift budget;
+reported "recovered", action "untangled (deformation x s)"). A reduced model needs it because
+its subspace may hold no path out of an inverted state (a full-space model gets out through
+its materials' compression barrier, fem/materials.py).
 If none passes the hard checks, the state before the step is restored and the step is
 marked "failed": the guard never lets a NaN out. Simulated time still advances (the
 simulation goes on, holding its last good state).
@@ -83,6 +91,7 @@ class GuardSettings:
     newton_iterations: int = 4
     inversion: bool = True
     energy_projection: bool = True
+    untangle_after: int = 10
 
     @classmethod
     def from_scene(cls, section):
@@ -179,7 +188,9 @@ class StabilityGuard:
     def reset(self):
         """Forget the cached measurement and the running totals (Simulator.reset)."""
         self.totals = {"guard_recoveries": 0, "guard_failures": 0, "guard_degraded": 0,
-                       "guard_substeps_total": 0, "guard_indefinite_steps": 0, "guard_projections": 0}
+                       "guard_substeps_total": 0, "guard_indefinite_steps": 0, "guard_projections": 0,
+                       "guard_untangles": 0}
+        self._inverted_run = 0
         self.last_event = ""
         self.invalidate()
 
@@ -322,6 +333,8 @@ class StabilityGuard:
             # The reduced solver met an indefinite A and took an LU Newton step; the checks
             # above accepted its result. Counted so a run shows how often that happened.
             self.totals["guard_indefinite_steps"] += 1
+        if report["stability"] != "failed" and after.finite:
+            after = self._untangle(after, report, gravity)
         if report["stability"] != "stable":
             self.last_event = (f"step {step_count + 1}: {report['stability']} ({report['guard_reason']}"
                                f"{'; ' + report['guard_action'] if report['guard_action'] else ''})")
@@ -334,6 +347,54 @@ class StabilityGuard:
         report["guard_work"] = float(self._work)         # work of loads and contacts over the step
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
+
+    def _untangle(self, after, report, gravity):
+        """Inverted elements left after `untangle_after` accepted steps in a row: a reduced
+        model whose subspace cannot undo them (a tangle its modes and frames hold in place)
+        gets ReducedModel.untangle, its deformation shrunk towards a rigid placement of the
+        rest shape just enough that none is left. Kept only if it creates no energy beyond
+        half the drift budget (_untangle_affordable).
+        Returns the Measure of the state the step ends in."""
+        s = self.settings
+        if not (s.inversion and s.untangle_after > 0 and hasattr(self.model, "untangle")) or not after.inverted:
+            self._inverted_run = 0
+            return after
+        self._inverted_run += 1
+        if self._inverted_run < s.untangle_after:
+            return after
+        self._inverted_run = 0
+        snap = self.model.get_state()
+        factor = self.model.untangle(self.tets)
+        if factor is None or factor == 1.0:
+            return after
+        untangled = measure(self.model, self.tets, gravity, s.inversion)
+        if not untangled.finite or not self._untangle_affordable(after, untangled):
+            self.model.set_state(snap)
+            return after
+        if report["stability"] == "stable":
+            report["stability"] = "recovered"
+            self.totals["guard_recoveries"] += 1
+        report["guard_reason"] = ",".join(r for r in (report["guard_reason"], "inversion left") if r)
+        report["guard_action"] = ", ".join(a for a in (report["guard_action"],
+                                                       f"untangled (deformation x {factor:.3f})") if a)
+        report["guard_untangled"] = float(factor)
+        self.totals["guard_untangles"] += 1
+        return untangled
+
+    def _untangle_affordable(self, after, untangled):
+        """An untangle may not create energy, except within half the drift budget: moving a
+        pinned body that sags under gravity towards its rest shape raises its potential
+        energy. Allowed while the energy created since the ledger began, E - E0 - W, stays
+        under energy_growth / 2 x the run's energy scale (the drift check's own bound,
+        halved to leave the integrator room)."""
+        if untangled.total <= after.total + 1e-12 * abs(after.total):
+            return True
+        if self._ledger is None:
+            return False
+        E0, W, run_scale = self._ledger
+        W += self._work
+        run_scale = max(run_scale, self._run_scale(untangled, W))
+        return untangled.total - E0 - W <= 0.5 * self.settings.energy_growth * run_scale
 
     def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False, project=False):
         """Run n_sub sub-steps (optionally with more Newton iterations and implicit fictitious

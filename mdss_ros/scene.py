@@ -60,6 +60,12 @@ def _posint(value, where):
     return value
 
 
+def _nonneg_int(value, where):
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise SceneError(f"{where}: expected an integer >= 0, got {value!r}")
+    return value
+
+
 def _blas_threads(value, where):
     return value if value is None or value == "auto" else _posint(value, where)
 
@@ -130,6 +136,7 @@ SCHEMA = {
             "newton_iterations": (_posint, 4),
             "inversion": (_bool, True),
             "energy_projection": (_bool, True),
+            "untangle_after": (_nonneg_int, 10),
         },
     },
     "initial_velocity": {"linear": (_vec3, [0.0, 0.0, 0.0]), "angular": (_vec3, [0.0, 0.0, 0.0])},

@@ -333,3 +333,53 @@ def test_reduced_guard_counts_inverted_samples_and_coupling_elements_like_the_ve
         assert m._guard_inverted() == expected
         counts.append(expected)
     assert counts[0] == 0 and counts[-1] > 0
+
+
+def _tangled_free_body(untangle_after):
+    """A free 3-domain reduced beam (no gravity) whose modal coordinates and frames are set
+    to a tangle (about 40 of 480 tets inverted): random q and the middle frame turned
+    2.5 rad."""
+    from mdss_ros.rotations import exp_so3
+    sim = Simulator(load_scene("cantilever", overrides=dict(SMALL, **{
+        "model.kind": "reduced", "pins": [], "gravity": [0.0, 0.0, 0.0], "model.domains": {"count": 3},
+        "model.guard.untangle_after": untangle_after})), cache=PrecomputeCache(enabled=False))
+    m = sim.model
+    rng = np.random.default_rng(3)
+    m.q = [0.03 * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace]
+    m.frames.R[1] = exp_so3(np.array([0.0, 0.0, 2.5])) @ m.frames.R[1]
+    sim.guard.invalidate()
+    return sim
+
+
+def test_untangle_shrinks_a_tangle_until_no_element_is_inverted():
+    sim = _tangled_free_body(0)
+    m, tets = sim.model, sim.tetrahedra()
+    assert inverted_tets(sim.vertex_positions(), tets) > 0
+    mass = m.vertex_mass[:, None]
+    com = (mass * sim.vertex_positions()).sum(0) / mass.sum()
+    q = [qi.copy() for qi in m.q]
+    s = m.untangle(tets)
+    assert 0.0 < s < 1.0
+    assert inverted_tets(sim.vertex_positions(), tets) == 0
+    for a, b in zip(m.q, q):
+        np.testing.assert_allclose(a, s * b)
+    # the mass centre stays (the modes carry no mass moment; frames move about their centre)
+    np.testing.assert_allclose((mass * sim.vertex_positions()).sum(0) / mass.sum(), com, atol=1e-9)
+    assert m.untangle(tets) == 1.0                     # nothing left to untangle
+
+
+def test_guard_untangles_an_inversion_left_for_untangle_after_steps_and_not_before():
+    sim = _tangled_free_body(3)
+    tets = sim.tetrahedra()
+    reports = []
+    for _ in range(3):
+        sim.step()
+        reports.append(sim.stats())
+    assert all("untangled" not in r["guard_action"] for r in reports[:2])
+    assert "untangled" in reports[2]["guard_action"] and reports[2]["stability"] != "failed"
+    assert "inversion left" in reports[2]["guard_reason"] and 0.0 < reports[2]["guard_untangled"] < 1.0
+    assert reports[2]["guard_untangles"] == 1
+    assert inverted_tets(sim.vertex_positions(), tets) == 0
+    off = _tangled_free_body(0)                         # untangle_after: 0 turns it off
+    off.step(4)
+    assert off.stats()["guard_untangles"] == 0 and inverted_tets(off.vertex_positions(), tets) > 0

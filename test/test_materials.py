@@ -1,10 +1,14 @@
 """Hyperelastic material kernels: derivatives, invariance, linearisation, inversion, PSD projection."""
+import dataclasses
+
 import numpy as np
 import pytest
 from numba import njit
 
 from mdss_ros.errors import SceneError
 from mdss_ros.fem.materials import (
+    BARRIER_DEFAULT,
+    BARRIER_J_DEFAULT,
     KIND_COROTATED,
     KIND_NEOHOOKEAN,
     KIND_STVK,
@@ -13,6 +17,7 @@ from mdss_ros.fem.materials import (
     StVK,
     make_material,
     material_point,
+    reference_barrier,
     reference_psi_P,
     signed_svd,
     svd3_signed,
@@ -193,7 +198,8 @@ def test_stvk_push_back_grows_below_the_clamp():
     nu = 0.45 only just after: the weak point that is left, see fem/materials.py)."""
     rng = np.random.default_rng(4)
     U, V = rotation(rng), rotation(rng)
-    for mat in (MATERIALS[0], StVK(1e3, 0.3, 1000.0), StVK(1e3, 0.49, 1000.0)):
+    for mat in (StVK(E_, NU_, RHO_, barrier=0.0), StVK(1e3, 0.3, 1000.0, barrier=0.0),
+                StVK(1e3, 0.49, 1000.0, barrier=0.0)):       # the extrapolation alone
         mu, lam = mat.lame()
         k = 2 * mu + lam
 
@@ -271,6 +277,54 @@ def test_inverted_element_is_pushed_towards_uninversion(mat):
             assert np.linalg.det(F - h * P) > np.linalg.det(F)
 
 
+@pytest.mark.parametrize("mat", MATERIALS + OTHER_NU, ids=IDS + OTHER_IDS)
+def test_compression_barrier(mat):
+    """The barrier k/(3 j) (j - J)^3 acts below J = barrier_j only: above it the material is
+    bit for bit the bare one; below, it adds exactly dpsi/dJ cof(F) (the numpy reference),
+    its energy is continuous at j, and the smallest singular value is pushed back by
+    k (j - J)^2 / j * s0 s1 more than without it."""
+    rng = np.random.default_rng(21)
+    bare = dataclasses.replace(mat, barrier=0.0)
+    k, j = mat.barrier * mat.mu, mat.barrier_j
+    for svals in ([1.0, 1.0, 0.21], [1.3, 0.9, 0.5], [2.0, 1.0, 0.1001]):       # J >= j
+        F = with_singular_values(svals, rng)
+        assert np.linalg.det(F) >= j
+        for a, b in zip(point(mat, F), point(bare, F)):
+            assert np.array_equal(a, b)
+    for svals in ([1.67, 1.0, -0.03], [1.0, 1.0, 0.1], [0.5, 0.5, 0.5], [1.0, 1.0, -0.5]):  # J < j
+        F = with_singular_values(svals, rng)
+        psi, P, _ = point(mat, F)
+        psi0, P0, _ = point(bare, F)
+        pb, Pb = reference_barrier(F[None], k, j)
+        assert pb[0] > 0
+        np.testing.assert_allclose(psi - psi0, pb[0], rtol=1e-12)
+        np.testing.assert_allclose(P - P0, Pb[0], rtol=1e-10, atol=1e-12 * mat.mu)
+        U, s, V = signed_svd(F[None])
+        push = U[0, :, 2] @ (P - P0) @ V[0, :, 2]      # along the smallest singular value
+        J = np.prod(s[0])
+        assert push < 0
+        np.testing.assert_allclose(push, -k * (j - J) ** 2 / j * s[0, 0] * s[0, 1], rtol=1e-9)
+    F = np.diag([1.0, 1.0, j])
+    assert point(mat, F)[0] == point(bare, F)[0]
+    Fm = np.diag([1.0, 1.0, j - 1e-6])
+    assert abs(point(mat, Fm)[0] - point(bare, Fm)[0]) < 1e-15 * k
+
+
+def test_barrier_holds_a_flattened_element_the_bare_nu0_models_let_through():
+    """A flat element at F = diag(1.67, 1, s) with nu = 0 under a compressive principal
+    stress of 4 mu (a 1 kPa cantilever's self-weight at its clamp): without the barrier
+    the fixed corotated and StVK stresses stay below 4 mu in magnitude down to s = -0.3, so
+    the element can be pushed through; with it, the push back exceeds 4 mu before J = 0."""
+    for cls in (StVK, Corotated):
+        mat = cls(1e3, 0.0, 1000.0)
+        bare = dataclasses.replace(mat, barrier=0.0)
+
+        def push(m, t):
+            return -point(m, np.diag([1.67, 1.0, t]), False)[1][2, 2]
+        assert all(push(bare, t) < 4 * mat.mu for t in (0.1, 0.0, -0.3))
+        assert push(mat, 0.0) > 4 * mat.mu and push(mat, -0.3) > push(mat, 0.0)
+
+
 @pytest.mark.parametrize("project", [False, True])
 @pytest.mark.parametrize("mat", MATERIALS, ids=IDS)
 def test_degenerate_input_gives_finite_values(mat, project):
@@ -302,14 +356,20 @@ def eig_clamp(H):
 @pytest.mark.parametrize("regime", REGIMES)
 @pytest.mark.parametrize("mat", MATERIALS, ids=IDS)
 def test_projection_is_psd_and_the_nearest_one(mat, regime):
+    bare = dataclasses.replace(mat, barrier=0.0)
     for F in sample(regime):
+        H0 = point(bare, F)[2]
         H = point(mat, F)[2]
-        Hp = point(mat, F, True, True)[2]
-        assert np.array_equal(Hp, Hp.T)
-        w = np.linalg.eigvalsh(Hp)
-        assert w.min() >= -1e-8 * np.abs(w).max()
-        # identical to clamping the eigenvalues of (the symmetric part of) dPdF
-        assert np.linalg.norm(Hp - eig_clamp(H)) < 1e-9 * np.linalg.norm(H)
+        for m, ref in ((bare, eig_clamp(H0)),
+                       # with the compression barrier (J < barrier_j): material and barrier
+                       # parts are projected each on its own, a sum of PSD matrices
+                       (mat, eig_clamp(H0) + eig_clamp(H - H0))):
+            Hp = point(m, F, True, True)[2]
+            assert np.array_equal(Hp, Hp.T)
+            w = np.linalg.eigvalsh(Hp)
+            assert w.min() >= -1e-8 * np.abs(w).max()
+            # identical to clamping the eigenvalues of (the symmetric part of) dPdF
+            assert np.linalg.norm(Hp - ref) < 1e-9 * np.linalg.norm(H)
 
 
 @pytest.mark.parametrize("mat", MATERIALS, ids=IDS)
@@ -381,7 +441,8 @@ def test_kind_ids_params_and_derived_quantities():
     assert (KIND_STVK, KIND_COROTATED, KIND_NEOHOOKEAN) == (0, 1, 2)
     assert [m.kind_id for m in MATERIALS] == [0, 1, 2]
     for m in MATERIALS:
-        assert m.params.dtype == np.float64 and m.params.shape == (3,)
+        assert m.params.dtype == np.float64 and m.params.shape == (5,)
+        assert m.params[3] == BARRIER_DEFAULT * m.mu and m.params[4] == BARRIER_J_DEFAULT
         mu, lam = m.lame()
         assert np.isclose(mu, E_ / (2 * (1 + NU_))) and np.isclose(lam, E_ * NU_ / ((1 + NU_) * (1 - 2 * NU_)))
         assert np.isclose(m.wave_speed(), np.sqrt((lam + 2 * mu) / RHO_))
@@ -408,6 +469,8 @@ def test_make_material_builds_each_model():
         assert type(m) is cls and m.name == name and m.young == 1e5 and m.density == 1000.0
     assert make_material(dict(GOOD, s_min=0.3)).s_min == 0.3
     assert make_material(dict(GOOD, poisson=0)).lam == 0.0
+    m = make_material(dict(GOOD, model="corotated", barrier=0, barrier_j=0.1))
+    assert m.barrier == 0.0 and m.barrier_j == 0.1 and m.params[3] == 0.0
 
 
 @pytest.mark.parametrize("change, key", [
@@ -425,6 +488,10 @@ def test_make_material_builds_each_model():
     ({"density": None}, "density"),
     ({"youngs": 1e5}, "youngs"),
     ({"s_min": 1.5}, "s_min"),
+    ({"barrier": -1.0}, "barrier"),
+    ({"barrier": "on"}, "barrier"),
+    ({"barrier_j": 0.0}, "barrier_j"),
+    ({"barrier_j": 1.0}, "barrier_j"),
 ])
 def test_make_material_errors_name_the_key(change, key):
     spec = dict(GOOD)

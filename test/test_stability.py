@@ -1,5 +1,5 @@
 """`mdss stability --quick` end to end (slow): the JSON table, the heat maps, no failed
-cell beyond the expected list below."""
+cell."""
 import json
 import os
 import subprocess
@@ -9,28 +9,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def expected_failure(r):
-    """Why a cell is allowed to fail (a string), or None. Each rule also says which failure
-    reasons it covers; anything else, and any non-finite state or energy created, fails
-    the test.
-
-    crushed: a 1 kPa body under the 1 kN tip load of force scale 1e3, a stress of ~1e5 Pa
-        (100 E). No model holds it without inverted tets while it is applied (full run: 9 to
-        144 inverted tets at release; the full neo-Hookean cantilever's tip is 48 m below
-        its clamp). After the release the study observes the body for up to 4 shear-wave
-        transits (stability_study.py); the neo-Hookean bodies and the reduced corotated
-        cantilever un-invert in that window, while StVK (full and reduced, nu 0), the fixed
-        corotated cantilever at nu 0 (no volumetric term: lam = 0) and the reduced spinning
-        free bodies at nu 0.499 (corotated, neo-Hookean) are re-inverted by their own
-        snap-backs and still hold inverted tets at its end. Inverted tets are the only
-        reason allowed.
-    """
-    inverted_only = all("inverted" in w for w in r["why"])
-    if r["young"] == 1e3 and r["force"] == 1e3 and inverted_only:
-        return "crushed"
-    return None
 
 
 def _key(r):
@@ -44,15 +22,15 @@ def check_report(report):
     # every value of every parameter appears
     for name in ("young", "poisson", "dt", "spin", "force"):
         assert {r[name] for r in rows} == set(report["design"][name])
+    # The target of issue 7: no failed cell. (The last 5, a 1 kPa body under the 1 kN load,
+    # were fixed by the compression barrier, fem/materials.py, and the guard's untangle.)
     failed = [r for r in rows if r["status"] == "failed"]
-    unexpected = [(_key(r), r["why"]) for r in failed if not expected_failure(r)]
-    assert not unexpected, unexpected
-    # Even there the guard's contract holds: nothing non-finite, no energy created.
-    for r in rows:
-        assert not any("non-finite" in w or "energy" in w for w in r["why"]), (_key(r), r["why"])
+    assert not failed, [(_key(r), r["why"]) for r in failed]
     for r in rows:
         if r["status"] == "recovered":          # every recovered cell says what the guard did
-            assert r["actions"] and all(a.startswith("rollback") for a in r["actions"])
+            assert r["actions"] and all(a.startswith(("rollback", "untangled")) for a in r["actions"])
+        if any("untangled" in a for a in r["actions"]):
+            assert r["kind"] == "reduced"        # full-space models un-invert through their materials
         if r["status"] == "stable":
             assert not r["actions"] and r["energy_created_ratio"] <= report["design"]["energy_bound"]
     return failed
@@ -69,8 +47,8 @@ def test_stability_quick_matrix(tmp_path):
     report = json.loads((tmp_path / "stability.json").read_text())
     for kind in ("full", "reduced"):
         assert (tmp_path / f"stability_{kind}.png").stat().st_size > 10_000
-    failed = check_report(report)
-    assert out.returncode == (1 if failed else 0)
+    assert not check_report(report)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
 
 
 def test_observation_window_after_release():

@@ -48,7 +48,7 @@ from numba import njit, prange
 KIND_STVK = 0
 KIND_COROTATED = 1
 KIND_NEOHOOKEAN = 2
-N_PARAMS = 3  # params = [mu, lam, s_min (StVK; 0.0 for the others)]
+N_PARAMS = 5  # params = [mu, lam, s_min (StVK; 0.0 for the others), barrier k, barrier j]
 
 STVK_S_MIN_DEFAULT = 0.5  # see the materials module docstring
 TWIST_DENOM_MIN = 1e-6
@@ -71,7 +71,8 @@ _O_TW = 63
 _O_W = 66
 _O_K = 72
 _O_M = 153
-WORK_LEN = 234
+_O_T = 234
+WORK_LEN = 315
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -647,27 +648,96 @@ def neohookean_point(F, mu, lam, P_out, dPdF_out, want_hessian, project):
 
 
 # ---------------------------------------------------------------------------------------
+# compression barrier (every material)
+# ---------------------------------------------------------------------------------------
+@njit(**_JIT)
+def barrier_terms(J, k, jb):
+    """(psi, dpsi/dJ, d2psi/dJ2) of the compression barrier psi_b = k/(3 jb) (jb - J)^3 for
+    J < jb, 0 above: C2 at jb, so small-strain behaviour and Newton are untouched."""
+    if k <= 0.0 or J >= jb:
+        return 0.0, 0.0, 0.0
+    d = jb - J
+    return k * d * d * d / (3.0 * jb), -k * d * d / jb, 2.0 * k * d / jb
+
+
+@njit(**_JIT)
+def _add_barrier(F, k, jb, P_out, dPdF_out, want_hessian, project, work):
+    """Add the compression barrier to (P_out, dPdF_out) in place; returns its psi.
+    P_b = a cof(F); dP_b = b cof (x) cof + a d cof/dF (a, b = dpsi/dJ, d2psi/dJ2). With
+    project, the barrier's own Hessian is projected in the SVD frame before it is added
+    (a sum of PSD parts is PSD)."""
+    U, V, B, H, Q, A, s, g, fl, tw, w, K, M = _views(work)
+    J = _cofactor(F, A)
+    psi, a, b = barrier_terms(J, k, jb)
+    if a == 0.0 and b == 0.0:
+        return psi
+    for i in range(3):
+        for j in range(3):
+            P_out[i, j] += a * A[i, j]
+    if not want_hessian:
+        return psi
+    if not project:
+        for r in range(9):
+            i = r // 3
+            j = r % 3
+            for c in range(9):
+                kk = c // 3
+                l = c % 3
+                v = b * A[i, j] * A[kk, l]
+                if i != kk and j != l:
+                    e1 = 1.0 if (kk - i) % 3 == 1 else -1.0
+                    e2 = 1.0 if (l - j) % 3 == 1 else -1.0
+                    v += a * e1 * e2 * F[3 - i - kk, 3 - j - l]
+                dPdF_out[r, c] += v
+        return psi
+    svd3_signed(F, U, s, V, B)
+    cc = (s[1] * s[2], s[0] * s[2], s[0] * s[1])
+    for i in range(3):
+        for j in range(3):
+            H[i, j] = b * cc[i] * cc[j]
+    for m in range(3):
+        i, j, o = _pair(m)
+        H[i, j] += a * s[o]
+        H[j, i] += a * s[o]
+        fl[m] = -a * s[o]
+        tw[m] = a * s[o]
+    if _needs_projection(H, fl, tw, A, w, Q):
+        _clamp_frame(H, fl, tw, w, Q)
+    T = work[_O_T:_O_T + 81].reshape((9, 9))
+    _assemble_frame(U, V, H, fl, tw, K, M, T, True)
+    for r in range(9):
+        for c in range(9):
+            dPdF_out[r, c] += T[r, c]
+    return psi
+
+
+# ---------------------------------------------------------------------------------------
 # dispatch and batch
 # ---------------------------------------------------------------------------------------
 @njit(**_JIT)
 def material_point_ws(kind_id, F, params, P_out, dPdF_out, want_hessian, project, work):
     """material_point with caller-held scratch ``work`` (WORK_LEN,) float64: no allocation."""
     if kind_id == KIND_STVK:
-        return stvk_point_ws(F, params[0], params[1], params[2], P_out, dPdF_out,
-                             want_hessian, project, work)
+        psi = stvk_point_ws(F, params[0], params[1], params[2], P_out, dPdF_out,
+                            want_hessian, project, work)
     elif kind_id == KIND_COROTATED:
-        return corotated_point_ws(F, params[0], params[1], P_out, dPdF_out,
-                                  want_hessian, project, work)
+        psi = corotated_point_ws(F, params[0], params[1], P_out, dPdF_out,
+                                 want_hessian, project, work)
     elif kind_id == KIND_NEOHOOKEAN:
-        return neohookean_point_ws(F, params[0], params[1], P_out, dPdF_out,
-                                   want_hessian, project, work)
-    raise ValueError("material_point: unknown kind_id (0 stvk, 1 corotated, 2 neohookean)")
+        psi = neohookean_point_ws(F, params[0], params[1], P_out, dPdF_out,
+                                  want_hessian, project, work)
+    else:
+        raise ValueError("material_point: unknown kind_id (0 stvk, 1 corotated, 2 neohookean)")
+    if params[3] > 0.0:
+        psi += _add_barrier(F, params[3], params[4], P_out, dPdF_out, want_hessian, project, work)
+    return psi
 
 
 @njit(**_JIT)
 def material_point(kind_id, F, params, P_out, dPdF_out, want_hessian, project):
     """Generic point kernel: kind_id in {KIND_STVK 0, KIND_COROTATED 1, KIND_NEOHOOKEAN 2},
-    params (N_PARAMS,) = [mu, lam, s_min] (s_min used by StVK only). Returns psi."""
+    params (N_PARAMS,) = [mu, lam, s_min, barrier k, barrier j] (s_min used by StVK only;
+    k = 0 turns the compression barrier off). Returns psi."""
     work = np.empty(WORK_LEN)
     return material_point_ws(kind_id, F, params, P_out, dPdF_out, want_hessian, project, work)
 

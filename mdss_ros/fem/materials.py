@@ -65,6 +65,22 @@ Materials (``name``, ``kind_id``)
     so P(I) = 0) and the constant ``psi0`` making psi(I) = 0; the tangent at F = I is then
     the linear-elastic tensor of (mu, lam). Closed-form P and dPdF (cofactor Hessian of J).
 
+Compression barrier (every material, on by default): ``psi_b = k/(3 j) (j - J)^3`` for
+    ``J < j``, zero above, added to psi (``P_b = dpsi_b/dJ cof(F)``). It is C2 at ``j``, so a
+    body never compressed below ``j`` (default 0.2: 80 % of an element's volume gone) behaves
+    bit for bit as the bare model. Why: StVK and fixed corotated at nu = 0 have no volume term,
+    so the force that un-inverts an element is bounded (about 1.4 mu and 2 mu at J = 0), and
+    a load beyond that holds it inverted for good. Measured (stability matrix, 1 kPa
+    cantilever at nu = 0, dt 1/30): under its own weight, stretched 1.7x at the clamp, the
+    full-space StVK and corotated bodies ended at rest with 9 elements flattened through the
+    clamp corner (J = -0.03 to -0.05) and stayed so for 200 steps; with the barrier none is
+    left. Physically it stands for densification: no solid loses 80 % of its volume under a
+    load of the order of its modulus. ``k = barrier * mu`` with ``barrier`` = 100 by default (push
+    back ``k j s0 s1`` = 20 mu s0 s1 at J = 0, growing quadratically with the depth of
+    inversion); ``barrier: 0`` turns it off. Scene keys ``barrier``, ``barrier_j``.
+    With ``project=True`` the barrier's Hessian is projected on its own and added (a sum of
+    PSD matrices).
+
 Numerical treatments (material_kernels.py): the twist eigenvalue ``(p_i + p_j)/(s_i + s_j)``
 uses ``max(s_i + s_j, TWIST_DENOM_MIN = 1e-6)`` (finite Hessian at F = 0 or reflections).
 ``project=True`` returns dPdF with negative eigenvalues set to zero, computed from the
@@ -79,7 +95,8 @@ Point kernels (numba, callable from njit code; kernels in ``material_kernels``):
 ``corotated_point(F, mu, lam, P_out, dPdF_out, want_hessian, project) -> psi``,
 ``neohookean_point(F, mu, lam, P_out, dPdF_out, want_hessian, project) -> psi``,
 ``material_point(kind_id, F, params, P_out, dPdF_out, want_hessian, project) -> psi`` with
-``params = [mu, lam, s_min]`` (N_PARAMS = 3; s_min ignored unless StVK), and the
+``params = [mu, lam, s_min, k, j]`` (N_PARAMS = 5; s_min ignored unless StVK; k, j the
+compression barrier's, k = 0 turns it off), and the
 allocation-free ``*_ws`` variants taking a ``np.empty(WORK_LEN)`` scratch last.
 Batch: ``material_batch(kind_id, params, F, psi_out, P_out, dPdF_out, want_hessian, project)``
 (parallel) and ``Material.evaluate``.
@@ -101,6 +118,7 @@ from .material_kernels import (  # noqa: F401  (re-exported API)
     PSD_TOL,
     STVK_S_MIN_DEFAULT,
     TWIST_DENOM_MIN,
+    barrier_terms,
     WORK_LEN,
     corotated_point,
     corotated_point_ws,
@@ -114,6 +132,9 @@ from .material_kernels import (  # noqa: F401  (re-exported API)
     stvk_point_ws,
     svd3_signed,
 )
+
+BARRIER_DEFAULT = 100.0    # barrier stiffness k, in units of mu (module docstring)
+BARRIER_J_DEFAULT = 0.2    # volume ratio below which the barrier acts
 
 KIND_IDS = {"stvk": KIND_STVK, "corotated": KIND_COROTATED, "neohookean": KIND_NEOHOOKEAN}
 
@@ -150,6 +171,8 @@ class _Material:
     young: float
     poisson: float
     density: float
+    barrier: float = BARRIER_DEFAULT
+    barrier_j: float = BARRIER_J_DEFAULT
     mu: float = field(init=False)
     lam: float = field(init=False)
 
@@ -162,6 +185,14 @@ class _Material:
         if density <= 0.0:
             raise ValueError(f"density must be > 0, got {density!r}")
         mu, lam = lame_parameters(young, poisson)
+        barrier = _real("barrier", self.barrier)
+        if barrier < 0.0:
+            raise ValueError(f"barrier must be >= 0 (0 turns it off), got {barrier!r}")
+        barrier_j = _real("barrier_j", self.barrier_j)
+        if not 0.0 < barrier_j < 1.0:
+            raise ValueError(f"barrier_j must be in (0, 1), got {barrier_j!r}")
+        object.__setattr__(self, "barrier", barrier)
+        object.__setattr__(self, "barrier_j", barrier_j)
         object.__setattr__(self, "young", young)
         object.__setattr__(self, "poisson", poisson)
         object.__setattr__(self, "density", density)
@@ -170,8 +201,10 @@ class _Material:
 
     @property
     def params(self):
-        """float64 (N_PARAMS,) = [mu, lam, s_min or 0] for material_point / material_batch."""
-        return np.array([self.mu, self.lam, 0.0], dtype=np.float64)
+        """float64 (N_PARAMS,) = [mu, lam, s_min or 0, barrier k (Pa), barrier j] for
+        material_point / material_batch."""
+        return np.array([self.mu, self.lam, getattr(self, "s_min", 0.0), self.barrier * self.mu,
+                         self.barrier_j], dtype=np.float64)
 
     def lame(self):
         """(mu, lam)."""
@@ -226,10 +259,6 @@ class StVK(_Material):
             raise ValueError(f"s_min must be in (0, 1), got {s_min!r}")
         object.__setattr__(self, "s_min", s_min)
 
-    @property
-    def params(self):
-        return np.array([self.mu, self.lam, self.s_min], dtype=np.float64)
-
 
 @dataclass(frozen=True)
 class Corotated(_Material):
@@ -249,15 +278,18 @@ class NeoHookean(_Material):
 
 MATERIALS = {cls.name: cls for cls in (StVK, Corotated, NeoHookean)}
 _REQUIRED = ("young", "poisson", "density")
-_OPTIONAL = {"stvk": ("s_min",), "corotated": (), "neohookean": ()}
+_OPTIONAL = {"stvk": ("s_min", "barrier", "barrier_j"), "corotated": ("barrier", "barrier_j"),
+             "neohookean": ("barrier", "barrier_j")}
 
 
 def make_material(spec):
     """Material from a scene dict ``{"model": "stvk"|"corotated"|"neohookean", "young": E,
-    "poisson": nu, "density": rho[, "s_min": ...(stvk only)]}``.
+    "poisson": nu, "density": rho[, "s_min": ...(stvk only)][, "barrier": k / mu (0 = off),
+    "barrier_j": j]}``.
 
     Raises SceneError naming the offending key (unknown model, missing/unknown key,
-    non-numeric value, E <= 0, nu outside [0, 0.5), density <= 0, s_min outside (0, 1)).
+    non-numeric value, E <= 0, nu outside [0, 0.5), density <= 0, s_min outside (0, 1),
+    barrier < 0, barrier_j outside (0, 1)).
     """
     if not isinstance(spec, Mapping):
         raise SceneError(f"material must be a mapping, got {type(spec).__name__}")
@@ -344,13 +376,23 @@ def reference_neohookean(F, mu, lam):
     return psi, P
 
 
+def reference_barrier(F, k, jb):
+    """numpy (psi, P) of the compression barrier k/(3 jb) (jb - J)^3 [J < jb], F (m, 3, 3)."""
+    F = np.asarray(F, dtype=np.float64)
+    d = np.maximum(jb - np.linalg.det(F), 0.0) if k > 0.0 else np.zeros(len(F))
+    return k * d ** 3 / (3.0 * jb), (-k * d ** 2 / jb)[:, None, None] * _cofactor(F)
+
+
 def reference_psi_P(material, F):
-    """numpy (psi, P) of any material instance."""
+    """numpy (psi, P) of any material instance (its compression barrier included)."""
     if material.name == "stvk":
-        return reference_stvk(F, material.mu, material.lam, material.s_min)
-    if material.name == "corotated":
-        return reference_corotated(F, material.mu, material.lam)
-    return reference_neohookean(F, material.mu, material.lam)
+        psi, P = reference_stvk(F, material.mu, material.lam, material.s_min)
+    elif material.name == "corotated":
+        psi, P = reference_corotated(F, material.mu, material.lam)
+    else:
+        psi, P = reference_neohookean(F, material.mu, material.lam)
+    pb, Pb = reference_barrier(F, material.barrier * material.mu, material.barrier_j)
+    return psi + pb, P + Pb
 
 
 def _cofactor(F):

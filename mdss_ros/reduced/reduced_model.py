@@ -1355,6 +1355,63 @@ class ReducedModel:
             self.v_full = np.where(self.is_full_vertex[:, None], V + s * (self.v_full - V), 0.0)
             self.v_full[self.body.pinned] = 0.0
 
+    def untangle(self, tets, bisections=8):
+        """Last resort of the stability guard for inverted elements a subspace cannot undo
+        (guard.py, `untangle_after`): shrink the deformation towards a rigid placement of
+        the rest shape until no element of tets (m, 4) is inverted. With s in [0, 1]:
+        q <- s q, qd <- s qd, each frame's rotation slerped and its centre (and the
+        full-space vertices) moved from the rigid target (s = 0) to where they are (s = 1);
+        s is the largest found by bisection. The target is the rest shape for a pinned
+        body; for a free one, the rest shape turned by the frames' mass-weighted mean
+        rotation about their mass centre, which it keeps (so the gravity potential and,
+        since the frame velocities are kept, the linear momentum do not change).
+        Returns s (1.0: nothing inverted), or None if even s = 0 leaves an inverted element."""
+        from ..guard import inverted_tets
+        from ..rotations import exp_so3, quat_from_matrix
+        q0, qd0, fr0, xf0 = self.q, self.qd, self.frames, self.x_full
+        m = np.array([dom.total_mass for dom in self.subspace])
+        cbar = np.array([dom.cbar for dom in self.subspace]).reshape(-1, 3)
+        if len(self.body.pinned) or not self.movable.all():
+            R_t, c_mean, cbar_mean = np.eye(3), np.zeros(3), np.zeros(3)
+        else:
+            u, _, vt = np.linalg.svd(np.einsum("k,kij->ij", m, fr0.R))
+            R_t = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+            c_mean, cbar_mean = m @ fr0.c / m.sum(), m @ cbar / m.sum()
+        c_t = c_mean + (cbar - cbar_mean) @ R_t.T
+        x_t = c_mean + (self.body.vertices - cbar_mean) @ R_t.T
+        rotvec = []
+        for R in fr0.R:                   # loop over domains (d ~ 10)
+            x, y, z, w = quat_from_matrix(R_t.T @ R)
+            half = np.arctan2(np.sqrt(x * x + y * y + z * z), w)
+            n = np.array([x, y, z])
+            rotvec.append(2.0 * half * n / max(np.linalg.norm(n), 1e-300))
+
+        def at(s):
+            fr = fr0.copy()
+            fr.c = np.where(self.movable[:, None], c_t + s * (fr0.c - c_t), fr0.c)
+            for k in np.flatnonzero(self.movable):
+                fr.R[k] = R_t @ exp_so3(s * rotvec[k])
+            xf = np.where(self.is_full_vertex[:, None], x_t + s * (xf0 - x_t), xf0)
+            xf[self.body.pinned] = xf0[self.body.pinned]
+            return [s * q for q in q0], fr, xf
+
+        def inverted(s):
+            q, fr, xf = at(s)
+            return inverted_tets(self.positions_of(np.arange(len(self.body.vertices)), q, fr, xf), tets)
+
+        if not inverted(1.0):
+            return 1.0
+        if inverted(0.0):
+            return None
+        lo, hi = 0.0, 1.0
+        for _ in range(bisections):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if not inverted(mid) else (lo, mid)
+        self.q, self.frames, self.x_full = at(lo)
+        self.qd = [lo * qd for qd in qd0]
+        self._start_eval = None
+        return lo
+
     def _guard_radii(self, k):
         """(largest rest radius, largest per-vertex basis norm) of subspace domain k, cached."""
         if not hasattr(self, "_guard_rs"):
