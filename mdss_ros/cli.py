@@ -114,14 +114,15 @@ def cmd_run(args):
     # The stability guard's run totals: a user should see at a glance whether it acted.
     last = sim.stats() if step_ms else {}
     summary["guard"] = {k: last[k] for k in ("guard_recoveries", "guard_degraded", "guard_failures",
-                                             "guard_projections", "guard_last_event") if k in last}
+                                             "guard_projections", "guard_untangles", "guard_last_event")
+                        if k in last}
     median = f"{summary['step_ms_median']:.2f}" if step_ms else "-"
     print(f"mdss run: done, {steps} steps to t = {sim.time:.3f} s in {wall:.2f} s wall "
           f"(median step {median} ms)")
     if summary["guard"]:
         g = summary["guard"]
         print(f"mdss run: stability guard: {g.get('guard_recoveries', 0)} recovered, {g.get('guard_degraded', 0)} "
-              f"degraded, {g.get('guard_failures', 0)} failed steps"
+              f"degraded, {g.get('guard_failures', 0)} failed steps, {g.get('guard_untangles', 0)} untangles"
               + (f"; last event: {g['guard_last_event']}" if g.get("guard_last_event") else ""))
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2))

@@ -57,8 +57,9 @@ Per step the guard reports (merged into Simulator.stats()):
   guard_substeps, guard_projected (kinetic energy removed by energy projections in the step,
   J), guard_indefinite_steps (accepted steps whose reduced system matrix was
   indefinite and solved by LU, see ReducedModel._solve), guard_work (work of the loads and contacts over the step, as the model
-  accounts it), and running totals guard_recoveries, guard_failures, guard_degraded,
-  guard_projections (steps kept with an energy projection).
+  accounts it), guard_untangled (the untangle factor, on a step that untangled), and running
+  totals guard_recoveries, guard_failures, guard_degraded, guard_projections (steps kept
+  with an energy projection), guard_untangles.
 """
 from dataclasses import dataclass, field
 

@@ -821,6 +821,7 @@ class MdssNode(Node):
             "guard_recoveries": stats.get("guard_recoveries", 0),
             "guard_degraded": stats.get("guard_degraded", 0),
             "guard_substeps_total": stats.get("guard_substeps_total", 0),
+            "guard_untangles": stats.get("guard_untangles", 0),
             "guard_last_event": stats.get("guard_last_event", ""),
             "dofs": stats.get("dofs", 0),
             "domains": len(self.domain_names),

@@ -346,8 +346,10 @@ class Simulator:
                          f"domain ({'met' if bud['met'] else 'NOT met: closest candidate'}; "
                          f"{'cached probe' if bud.get('cached') else 'probe'} of {cands})")
         guard = self.scene["model"]["guard"]
+        untangle = (f"; inverted elements a reduced model keeps for {guard['untangle_after']} steps are untangled"
+                    if guard["untangle_after"] and hasattr(self.model, "untangle") else "")
         lines.append("stability guard: " + ("on (every step checked for NaN, energy growth, speed and new "
-                                              "inversions; a bad step is rolled back and retried)"
+                                              f"inversions; a bad step is rolled back and retried{untangle})"
                                               if guard["enabled"] else "off (model.guard.enabled: false)"))
         watched = hasattr(self.model, "watch")
         lines.append(f"outputs per step: {'only ' if watched else ''}the {len(b.surface.vertex_ids)} surface "

@@ -55,6 +55,15 @@ def _subset_geometry(geom, ids):
     return TetGeometry(volume=geom.volume[ids], grads=np.ascontiguousarray(geom.grads[ids]))
 
 
+def _det_identity_plus(H):
+    """det(I + H) of m 3x3 matrices given row-major as H (m, 9); np.linalg.det's per-call
+    overhead is most of the guard's inversion check on a small model."""
+    a, b, c = H[:, 0] + 1.0, H[:, 1], H[:, 2]
+    d, e, f = H[:, 3], H[:, 4] + 1.0, H[:, 5]
+    g, h, i = H[:, 6], H[:, 7], H[:, 8] + 1.0
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+
+
 class ReducedModel:
     """Multi-domain subspace model of a Body; see the module docstring.
 
@@ -1310,7 +1319,7 @@ class ReducedModel:
                     w = fr.R[k].T @ fr.w[k]
                     kinetic += (0.5 * dom.total_mass * float(fr.v[k] @ fr.v[k])
                                 + 0.5 * float(w @ self._inertia(k, q) @ w)
-                                + float(w @ np.einsum("a,b,abk->k", q, qd, dom.tensors.W)))
+                                + float(w @ (qd @ (q @ dom.tensors.W.reshape(dom.r, -1)).reshape(dom.r, 3))))
                     speed = max(speed, float(np.linalg.norm(fr.v[k]) + np.linalg.norm(fr.w[k])
                                              * (rho + sigma * np.linalg.norm(q)) + sigma * np.linalg.norm(qd)))
                 else:
@@ -1430,8 +1439,8 @@ class ReducedModel:
         for k, dom in enumerate(self.subspace):
             if getattr(dom, "sampled", None) is not None and len(dom.sampled.elements):
                 G = dom.sampled.G
-                F = (G.reshape(-1, G.shape[2]) @ self.q[k]).reshape(-1, 3, 3) + np.eye(3)
-                n += int(np.count_nonzero(~(np.linalg.det(F) > 0)))          # NaN counts
+                F = (G.reshape(-1, G.shape[2]) @ self.q[k]).reshape(-1, 9)
+                n += int(np.count_nonzero(~(_det_identity_plus(F) > 0)))      # NaN counts
         x_I = None
         if self.coupling_kind == "element":
             c = getattr(self, "_start_eval", None)

@@ -44,7 +44,8 @@ Classification of a cell:
              run's energy scale max_t (E_kin + E_el + |W| + |gravity potential change|)
              (the guard's own "energy drift" check, guard.py, enforces the same bound);
   recovered  the guard acted (a step was rolled back and retried, or kept "degraded"
-             with soft signs left) and the run ended finite, uninverted, energy bounded;
+             with soft signs left, or a reduced model's lasting inversion was untangled)
+             and the run ended finite, uninverted, energy bounded;
   stable     no guard action and the checks above pass.
 Each recovered cell lists what the guard did (per-step actions, counted).
 """
