@@ -666,11 +666,15 @@ def _add_barrier(F, k, jb, P_out, dPdF_out, want_hessian, project, work):
     P_b = a cof(F); dP_b = b cof (x) cof + a d cof/dF (a, b = dpsi/dJ, d2psi/dJ2). With
     project, the barrier's own Hessian is projected in the SVD frame before it is added
     (a sum of PSD parts is PSD)."""
+    # The common case (J >= jb) must cost a determinant, not the scratch views below.
+    J = (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+         - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+         + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
+    if J >= jb:
+        return 0.0
     U, V, B, H, Q, A, s, g, fl, tw, w, K, M = _views(work)
     J = _cofactor(F, A)
     psi, a, b = barrier_terms(J, k, jb)
-    if a == 0.0 and b == 0.0:
-        return psi
     for i in range(3):
         for j in range(3):
             P_out[i, j] += a * A[i, j]
