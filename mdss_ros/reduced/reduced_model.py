@@ -1372,8 +1372,9 @@ class ReducedModel:
         full-space vertices) moved from the rigid target (s = 0) to where they are (s = 1);
         s is the largest found by bisection. The target is the rest shape for a pinned
         body; for a free one, the rest shape turned by the frames' mass-weighted mean
-        rotation about their mass centre, which it keeps (so the gravity potential and,
-        since the frame velocities are kept, the linear momentum do not change).
+        rotation about their mass centre, which it keeps: without full-space domains the
+        gravity potential and (frame velocities kept, modes carry none) the linear
+        momentum do not change.
         Returns s (1.0: nothing inverted), or None if even s = 0 leaves an inverted element."""
         from ..guard import inverted_tets
         from ..rotations import exp_so3, quat_from_matrix
