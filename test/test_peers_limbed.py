@@ -132,6 +132,7 @@ def test_limbed_comparison_on_a_tiny_body(tmp_path, monkeypatch):
     # The tip force lifts its arm while gravity pulls the other one down.
     assert fem["tip_displacement"]["armx_tip"][2] > 0 > fem["tip_displacement"]["army_tip"][2]
     assert 0.0 < ours["rms_vs_fem"] < 1.0 and ours["domains"] == 3
+    assert ours["fit"]["fit_energy_ratio"] > 0 and set(ours["fit"]["fit_misfit"]) == {"hub", "armx", "army"}
     assert (tmp_path / "tradeoff_peers_limbed.png").stat().st_size > 10000
     if "skipped" in res["mujoco"]:
         assert "requirements-peers.txt" in res["mujoco"]["skipped"]
@@ -264,3 +265,29 @@ def test_large_deformation_case_bends_the_loaded_arm_past_45_degrees(tmp_path):
     for r in p["rows"]:
         assert np.isfinite(r["rms_vs_fem"]) and np.isfinite(r["tip_loaded"]), r["label"]
     assert rows["mdss reduced: scene config"]["bend_deg"]["arm0_tip"] > 10.0
+
+
+def test_subspace_fit_reproduces_a_reduced_configuration_and_flags_a_foreign_one():
+    """The best fit by the model's own frames and subspaces: a configuration the reduced
+    model reached itself is fitted exactly (same elastic energy, split domains / coupling);
+    a smooth field no subspace holds leaves a misfit and costs more energy than it."""
+    from mdss_ros.simulator import Simulator
+    from mdss_ros.precompute import PrecomputeCache
+    sim = Simulator(load_scene(tiny_scene()), cache=PrecomputeCache(enabled=False))
+    sim.set_wrench("armx_tip", force=(0.0, 0.0, 4.0))
+    sim.step(15)
+    m = sim.model
+    x = sim.vertex_positions().copy()
+    X = m.body.vertices
+    peak = float(np.linalg.norm(x - X, axis=1).max())
+    assert peak > 1e-4
+    fit = pl.fit_diagnostics(m, x, peak)
+    assert set(fit["fit_misfit"]) == {"hub", "armx", "army"}
+    assert fit["fit_misfit_max"] < 1e-6
+    assert fit["fit_energy_ratio"] == pytest.approx(1.0, rel=1e-6)
+    assert fit["fem_energy"]["coupling"] > 0 and fit["fem_energy"]["domains"] > 0
+    wobble = x + 0.2 * peak * np.sin(X * 60.0)                # short waves: in no subspace
+    foreign = pl.fit_diagnostics(m, wobble, peak)
+    assert foreign["fit_misfit_max"] > 0.01
+    x_fit, _ = pl.subspace_fit(m, wobble)
+    assert sum(pl.elastic_split(m, x_fit).values()) != pytest.approx(sum(pl.elastic_split(m, wobble).values()))

@@ -344,6 +344,59 @@ def displacement_metrics(X, x, x_fem, handles, loaded, x_mjfull=None):
     return out
 
 
+# ---------------------------------------------------------------------- subspace fit
+def subspace_fit(model, x_ref, iterations=20):
+    """Best fit of a configuration by a reduced model's frames and subspaces, domain by
+    domain: for each subspace domain, the rotation R, centre c and modal coordinates q
+    minimising the mass-weighted |x_ref - (c + R (r + U q))|^2 over its vertices
+    (alternating Procrustes for (R, c) and least squares for q). Full-space vertices keep
+    x_ref. Returns (x_fit (n_verts, 3), {domain name: largest vertex misfit (m)})."""
+    x_fit = np.array(x_ref, dtype=np.float64, copy=True)
+    misfit = {}
+    for dom in model.subspace:
+        w, y, U3 = dom.mass, x_ref[dom.vertices], dom.U3
+        sw = np.sqrt(np.repeat(w, 3))
+        A = U3.reshape(-1, dom.r) * sw[:, None]
+        q = np.zeros(dom.r)
+        for _ in range(iterations):
+            p = dom.r_local + np.einsum("lia,a->li", U3, q)
+            pm, ym = w @ p / w.sum(), w @ y / w.sum()
+            u, _, vt = np.linalg.svd(((p - pm) * w[:, None]).T @ (y - ym))
+            R = vt.T @ np.diag([1.0, 1.0, np.linalg.det(vt.T @ u.T)]) @ u.T
+            c = ym - R @ pm
+            if not dom.movable:                       # a pinned domain has no frame to fit
+                R, c = np.eye(3), dom.cbar
+            q = np.linalg.lstsq(A, ((y - c) @ R - dom.r_local).reshape(-1) * sw, rcond=None)[0]
+        x_fit[dom.vertices] = c + (dom.r_local + np.einsum("lia,a->li", U3, q)) @ R.T
+        misfit[dom.name] = float(np.linalg.norm(x_fit[dom.vertices] - y, axis=1).max())
+    return x_fit, misfit
+
+
+def elastic_split(model, x):
+    """Elastic energy (J) of configuration x (n_verts, 3) over the body's elements, split into
+    coupling elements (those joining domains) and the rest: {"domains", "coupling"}."""
+    from ..fem.elements import element_forces, tet_geometry
+    body = model.body
+    e = element_forces(x, body.tets, tet_geometry(body.vertices, body.tets), body.material, False)[0]
+    coupling = np.zeros(len(body.tets), dtype=bool)
+    coupling[getattr(model, "c_tets", [])] = True
+    return {"domains": float(e[~coupling].sum()), "coupling": float(e[coupling].sum())}
+
+
+def fit_diagnostics(model, x_fem, peak):
+    """How well the model's subspaces hold the FEM statics x_fem: the largest per-domain
+    misfit of the best fit (fraction of the peak displacement) and the elastic energy of the
+    fitted configuration against the FEM's, split domains / coupling elements. A fit close
+    in displacement but far above in energy means the subspaces miss the strain field: the
+    reduced equilibrium is stiffer than the FEM's."""
+    x_fit, misfit = subspace_fit(model, x_fem)
+    fem, fit = elastic_split(model, x_fem), elastic_split(model, x_fit)
+    return {"fit_misfit_max": max(misfit.values()) / peak if misfit else 0.0,
+            "fit_misfit": {k: v / peak for k, v in misfit.items()},
+            "fit_energy": fit, "fem_energy": fem,
+            "fit_energy_ratio": (fit["domains"] + fit["coupling"]) / max(fem["domains"] + fem["coupling"], 1e-300)}
+
+
 # ---------------------------------------------------------------------- statics
 FEM_LOAD_STEPS = (1, 3, 10, 30)
 REDUCED_LOAD_STEPS = (1, 4, 16)
@@ -517,7 +570,8 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
             sim = Simulator(sc, cache=PrecomputeCache(cache_dir))
             build_s = time.perf_counter() - t0
             x, ramp = reduced_static(sim, loads)
-            row = {"static_load_steps": ramp, "label": label, "who": "mdss", "dofs": int(sim.model.n_dofs), "domains": int(sim.stats()["domains"]),
+            fit = fit_diagnostics(sim.model, x_fem, peak)
+            row = {"static_load_steps": ramp, "fit": fit, "label": label, "who": "mdss", "dofs": int(sim.model.n_dofs), "domains": int(sim.stats()["domains"]),
                    "build_s": build_s, "step_ms": median_ms_from_rest(sim, timing_steps), "x": x, "overrides": ov,
                    "_timer": (lambda s_=sim: median_ms_from_rest(s_, timing_steps))}
         except ReportError as err:
@@ -526,7 +580,9 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
             continue
         rows.append(row)
         log(f"peers (limbed): {label}: {row['dofs']} DOFs, {row['domains']} domains, {row['step_ms']:.3f} ms/step "
-            f"(build {build_s:.1f} s) [{time.perf_counter() - t0:.1f} s]")
+            f"(build {build_s:.1f} s) [{time.perf_counter() - t0:.1f} s]; best fit of the FEM statics: misfit "
+            f"{100 * fit['fit_misfit_max']:.2f} % of peak, elastic energy {fit['fit_energy_ratio']:.2f}x the FEM's "
+            f"(coupling elements {fit['fit_energy']['coupling']:.3g} J vs {fit['fem_energy']['coupling']:.3g} J)")
 
     retime_round_robin(rows, timing_rounds)
     log(f"peers (limbed): re-timed every row in {timing_rounds} round-robin passes")
