@@ -1304,10 +1304,12 @@ class ReducedModel:
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
         with np.errstate(all="ignore"):
+            # x_full / v_full hold every vertex but only full-space rows are state: checking
+            # them on a model without full-space domains was a third of this measure.
             finite = bool(all(np.isfinite(q).all() and np.isfinite(v).all() for q, v in zip(self.q, self.qd))
                           and np.isfinite(fr.c).all() and np.isfinite(fr.R).all() and np.isfinite(fr.v).all()
-                          and np.isfinite(fr.w).all() and np.isfinite(self.x_full).all()
-                          and np.isfinite(self.v_full).all())
+                          and np.isfinite(fr.w).all()
+                          and (not self.F or (np.isfinite(self.x_full).all() and np.isfinite(self.v_full).all())))
             if not finite:
                 return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
             kinetic, grav, speed = 0.0, 0.0, 0.0
@@ -1450,7 +1452,7 @@ class ReducedModel:
         ids, local, plan = self._guard_tets(coupling=x_I is None)
         if len(ids):
             n += inverted_tets(self._planned_positions(ids, plan), local)
-        if x_I is not None:
+        if x_I is not None and len(self.c_elem):
             n += inverted_tets(x_I, self.c_elem)
         return n
 
