@@ -47,8 +47,10 @@ def cmd_run(args):
         # the run and finish the files.
         from .errors import MdssError
         from .record.replay import RunRecording
+        if not args.mcap_flush > 0:
+            raise SystemExit(f"mdss run: --mcap-flush must be > 0 seconds, got {args.mcap_flush}")
         try:
-            rec = RunRecording(mcap=args.mcap, rrd=args.rrd)
+            rec = RunRecording(mcap=args.mcap, rrd=args.rrd, flush_interval_s=args.mcap_flush)
         except MdssError as err:
             raise SystemExit(f"mdss run: {err}")
     t0 = time.perf_counter()
@@ -416,6 +418,9 @@ def main(argv=None):
     scene_args(p)
     p.add_argument("--steps", type=int, help="number of steps (default: scene duration / dt)")
     p.add_argument("--mcap", help="record an MCAP file")
+    p.add_argument("--mcap-flush", type=float, default=0.5, metavar="SECONDS",
+                   help="wall seconds between MCAP chunk flushes: at most about this much is lost if "
+                        "the run is killed or the disk fills (default 0.5)")
     p.add_argument("--rrd", help="record a rerun .rrd file")
     p.add_argument("--json", help="write a JSON summary here")
     p.add_argument("--explain", action="store_true",

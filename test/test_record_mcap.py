@@ -287,7 +287,10 @@ def test_unwritable_paths_are_reported_at_start(tmp_path):
 
 
 def test_a_disk_filling_up_mid_run_is_reported_and_the_run_goes_on(tmp_path):
-    """RLIMIT_FSIZE makes writes past 60 kB fail with EFBIG, as a full disk fails with ENOSPC."""
+    """RLIMIT_FSIZE makes writes past 60 kB fail with EFBIG, as a full disk fails with ENOSPC.
+    Chunks are flushed every 0.05 s: with the default 0.5 s a fast machine wrote ~86 kB
+    before the first flush (this run records ~170 kB/s), so no chunk fitted under the limit
+    and nothing was readable."""
     import resource
     import signal
 
@@ -297,8 +300,8 @@ def test_a_disk_filling_up_mid_run_is_reported_and_the_run_goes_on(tmp_path):
 
     out = tmp_path / "big.mcap"
     res = subprocess.run([sys.executable, "-m", "mdss_ros.cli", "run", *SCENE_ARGS, "--steps", "150",
-                          "--mcap", str(out)], capture_output=True, text=True, cwd=ROOT, env=_env(),
-                         preexec_fn=limit)
+                          "--mcap", str(out), "--mcap-flush", "0.05"], capture_output=True, text=True, cwd=ROOT,
+                         env=_env(), preexec_fn=limit)
     assert res.returncode == 0, res.stderr
     assert "recording to" in res.stderr and "stopped: File too large; the simulation goes on" in res.stderr
     assert "done, 150 steps" in res.stdout
