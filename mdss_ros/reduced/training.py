@@ -44,23 +44,31 @@ class TrainingSet:
         return x
 
 
-def best_fit_frames(model, x):
-    """Per subspace domain: (c (3,), R (3, 3), q (r,)) fitting positions x (n_verts, 3)."""
+def best_fit_frames(model, x, iterations=1):
+    """Per subspace domain: (c (3,), R (3, 3), q (r,)) fitting positions x (n_verts, 3).
+
+    The frame is the mass-weighted best rigid fit (c the mass centre: the modes carry no
+    mass moment), q the mass-orthogonal projection of what is left. With iterations > 1 the
+    rotation is refitted to the deformed shape r + U q and q projected again, alternately
+    (the least-squares fit of frame and modes together; peers_limbed.subspace_fit)."""
     out = []
     for dom in model.subspace:
-        xs = x[dom.vertices]
-        if dom.movable:
-            c = (dom.mass[:, None] * xs).sum(0) / dom.total_mass
-            A = ((xs - c) * dom.mass[:, None]).T @ dom.r_local
-            U, _, Vt = np.linalg.svd(A)
-            R = U @ Vt
-            if np.linalg.det(R) < 0:
-                U[:, -1] *= -1
+        xs, q = x[dom.vertices], None
+        for _ in range(iterations):
+            p = dom.r_local if q is None else dom.local_positions(q)
+            if dom.movable:
+                c = (dom.mass[:, None] * xs).sum(0) / dom.total_mass
+                A = ((xs - c) * dom.mass[:, None]).T @ p
+                U, _, Vt = np.linalg.svd(A)
                 R = U @ Vt
-        else:
-            c, R = dom.cbar, np.eye(3)
-        u = (xs - c) @ R - dom.r_local
-        out.append((c, R, dom.U.T @ (np.repeat(dom.mass, 3) * u.reshape(-1))))
+                if np.linalg.det(R) < 0:
+                    U[:, -1] *= -1
+                    R = U @ Vt
+            else:
+                c, R = dom.cbar, np.eye(3)
+            u = (xs - c) @ R - dom.r_local
+            q = dom.U.T @ (np.repeat(dom.mass, 3) * u.reshape(-1))
+        out.append((c, R, q))
     return out
 
 

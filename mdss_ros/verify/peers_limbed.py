@@ -349,26 +349,14 @@ def subspace_fit(model, x_ref, iterations=20):
     """Best fit of a configuration by a reduced model's frames and subspaces, domain by
     domain: for each subspace domain, the rotation R, centre c and modal coordinates q
     minimising the mass-weighted |x_ref - (c + R (r + U q))|^2 over its vertices
-    (alternating Procrustes for (R, c) and least squares for q). Full-space vertices keep
-    x_ref. Returns (x_fit (n_verts, 3), {domain name: largest vertex misfit (m)})."""
+    (training.best_fit_frames, alternating). Full-space vertices keep x_ref.
+    Returns (x_fit (n_verts, 3), {domain name: largest vertex misfit (m)})."""
+    from ..reduced.training import best_fit_frames
     x_fit = np.array(x_ref, dtype=np.float64, copy=True)
     misfit = {}
-    for dom in model.subspace:
-        w, y, U3 = dom.mass, x_ref[dom.vertices], dom.U3
-        sw = np.sqrt(np.repeat(w, 3))
-        A = U3.reshape(-1, dom.r) * sw[:, None]
-        q = np.zeros(dom.r)
-        for _ in range(iterations):
-            p = dom.r_local + np.einsum("lia,a->li", U3, q)
-            pm, ym = w @ p / w.sum(), w @ y / w.sum()
-            u, _, vt = np.linalg.svd(((p - pm) * w[:, None]).T @ (y - ym))
-            R = vt.T @ np.diag([1.0, 1.0, np.linalg.det(vt.T @ u.T)]) @ u.T
-            c = ym - R @ pm
-            if not dom.movable:                       # a pinned domain has no frame to fit
-                R, c = np.eye(3), dom.cbar
-            q = np.linalg.lstsq(A, ((y - c) @ R - dom.r_local).reshape(-1) * sw, rcond=None)[0]
-        x_fit[dom.vertices] = c + (dom.r_local + np.einsum("lia,a->li", U3, q)) @ R.T
-        misfit[dom.name] = float(np.linalg.norm(x_fit[dom.vertices] - y, axis=1).max())
+    for dom, (c, R, q) in zip(model.subspace, best_fit_frames(model, x_ref, iterations)):
+        x_fit[dom.vertices] = c + dom.local_positions(q) @ R.T
+        misfit[dom.name] = float(np.linalg.norm(x_fit[dom.vertices] - x_ref[dom.vertices], axis=1).max())
     return x_fit, misfit
 
 
