@@ -17,13 +17,30 @@ mkdir -p "$out"
 cd "$root"
 # The node records every input it applied and every output it published (mcap_path, a
 # rosbag2 folder) and a rerun log (rerun_mode file); the timeline comes from another process.
-"$py" launch_scripts/run_scene.py "$scene" -p "mcap_path:=$bag" -p rerun_mode:=file -p "rerun_path:=$rrd"
+# The script always ends by saying what was recorded, or why there is nothing to open.
+t0=$SECONDS
+rc=0
+"$py" launch_scripts/run_scene.py "$scene" -p "mcap_path:=$bag" -p rerun_mode:=file -p "rerun_path:=$rrd" || rc=$?
 echo
-echo "demo: the node recorded"
-echo "  $bag   rosbag2 folder (MCAP): every input applied and every output published"
-echo "  $rrd   rerun log: surface mesh coloured by domain, frames, colliders, contacts, plots"
+mcap="$(ls "$bag"/*.mcap 2>/dev/null | head -n 1 || true)"
+if [ -z "$mcap" ] && [ ! -s "$rrd" ]; then
+  echo "demo: FAILED after $((SECONDS - t0)) s (exit code $rc): nothing was recorded." >&2
+  echo "  The node's messages above say why (look for ERROR or Traceback)." >&2
+  echo "  A scene name must be one of: $(cd msg_scenes && ls *.yaml | sed 's/\.yaml$//' | tr '\n' ' ')" >&2
+  exit "$(( rc == 0 ? 1 : rc ))"
+fi
+if [ "$rc" -ne 0 ]; then
+  echo "demo: a process exited with code $rc (see above); what was recorded up to then:"
+else
+  echo "demo: done in $((SECONDS - t0)) s; the node recorded"
+fi
+[ -n "$mcap" ] && echo "  $bag   rosbag2 folder (MCAP): every input applied and every output published"
+[ -s "$rrd" ] && echo "  $rrd   rerun log: surface mesh coloured by domain, frames, colliders, contacts, plots"
 echo "open them with"
-echo "  rerun viewer:  $root/.venv/bin/rerun $rrd"
-echo "  Foxglove:      File > Open local file > $bag/$(basename "$bag")_0.mcap"
-echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
-echo "  replay:        $root/.venv/bin/mdss replay $bag --check   (headless, compares every output bit for bit)"
+[ -s "$rrd" ] && echo "  rerun viewer:  $root/.venv/bin/rerun $rrd"
+if [ -n "$mcap" ]; then
+  echo "  Foxglove:      File > Open local file > $mcap"
+  echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
+  echo "  replay:        $root/.venv/bin/mdss replay $bag --check   (headless, compares every output bit for bit)"
+fi
+exit "$rc"

@@ -114,6 +114,22 @@ class InputPublisher(Node):
         finally:
             self.destroy_client(client)
 
+    def unpause(self, timeout=10.0):
+        """Call ~/unpause_physics (std_srvs/Empty) and wait for the answer."""
+        from std_srvs.srv import Empty
+        client = self.create_client(Empty, f"{self.target}/unpause_physics")
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f"{self.target}/unpause_physics is not available")
+            fut = client.call_async(Empty.Request())
+            deadline = time.monotonic() + timeout
+            while not fut.done() and time.monotonic() < deadline:
+                time.sleep(0.005)
+            if not fut.done():
+                raise TimeoutError(f"{self.target}/unpause_physics did not answer in {timeout} s")
+        finally:
+            self.destroy_client(client)
+
     def flush(self, timeout=10.0):
         """Wait until every subscriber acknowledged everything published (reliable QoS)."""
         return all(p.wait_for_all_acked(Duration(seconds=timeout)) for p in self.pubs.values())
@@ -217,6 +233,9 @@ def parse_args(argv):
     t.add_argument("scene", help="scene path or name in msg_scenes/")
     t.add_argument("--ahead", type=float, default=0.2, help="publish this many s of sim time early")
     t.add_argument("--all-now", action="store_true", help="publish every event at once (future stamps)")
+    t.add_argument("--unpause", action="store_true",
+                   help="call ~/unpause_physics once the node's input topics are matched "
+                        "(for a node started with start_paused)")
     sub.add_parser("clear", help="call ~/clear_forces")
     return ap.parse_args(argv)
 
@@ -250,6 +269,17 @@ def main(argv=None):
             from mdss_ros.scene import load_scene
             scene = load_scene(args.scene)
             node.wait_for_node("wrench", WrenchStamped, args.wait)
+            if args.unpause:
+                # every input topic the timeline uses is matched before physics starts, so
+                # the first event cannot be late whatever discovery takes
+                from sensor_msgs.msg import PointCloud2
+                for ev in scene["timeline"]:
+                    if ev["topic"] == "point_force":
+                        node.wait_for_node("point_forces", PointCloud2, args.wait)
+                    elif ev["topic"] == "collider_pose":
+                        node.wait_for_node(f"colliders/{ev['name']}/pose", PoseStamped, args.wait)
+                node.unpause(args.wait)
+                node.get_logger().info("inputs matched: physics unpaused")
             if not args.all_now:
                 node.wait_clock(timeout=args.wait)
             play_timeline(node, scene["timeline"], args.ahead, args.all_now)

@@ -106,10 +106,16 @@ def _env(domain):
     return env
 
 
-def _relay(name, proc):
+# The node logs this once its model is built and its topics exist (MdssNode.__init__).
+READY_MARK = "]: ready: "
+
+
+def _relay(name, proc, ready=None):
     for line in proc.stdout:
         sys.stdout.write(f"[{name}] {line}")
         sys.stdout.flush()
+        if ready is not None and READY_MARK in line:
+            ready.set()
 
 
 def main(argv=None):
@@ -140,15 +146,23 @@ def main(argv=None):
     env, py = _env(args.domain), sys.executable
     procs = []
 
-    def start(name, argv):
+    def start(name, argv, ready=None):
         p = subprocess.Popen([py] + argv, env=env, cwd=str(REPO), stdout=subprocess.PIPE,
                              stderr=subprocess.STDOUT, text=True, bufsize=1)
-        threading.Thread(target=_relay, args=(name, p), daemon=True).start()
+        threading.Thread(target=_relay, args=(name, p, ready), daemon=True).start()
         procs.append((name, p))
         return p
 
     node_argv = ["-m", "mdss_ros.node", "--ros-args", "--params-file", args.params_file,
                  "-p", f"scene:={args.scene}"]
+    timeline = bool(scene["timeline"]) and not args.no_timeline
+    # With a timeline, the node starts paused and the timeline publisher unpauses it once its
+    # topics are matched, so sim time 0 is the same instant for both (unless the user asked
+    # for start_paused, and then unpausing is theirs).
+    user_paused = any(p.split(":=")[0].strip() == "start_paused" for p in args.p)
+    unpause = timeline and not user_paused
+    if unpause:
+        node_argv += ["-p", "start_paused:=true"]
     if args.set:
         node_argv += ["-p", "scene_overrides:=[" + ", ".join(f'"{s}"' for s in args.set) + "]"]
     for p in args.p:
@@ -156,21 +170,39 @@ def main(argv=None):
     if args.record:
         start("recorder", [str(HERE / "run_scene.py"), "--recorder", args.record,
                            "--colliders", ",".join(scene["colliders"])])
-    node = start("node", node_argv)
-    if scene["timeline"] and not args.no_timeline:
-        start("timeline", [str(HERE / "force_publisher.py"), "timeline", args.scene])
+    ready = threading.Event()
+    node = start("node", node_argv, ready)
+    # The timeline starts once the node is ready, however long its model build (precompute,
+    # numba compilation) takes: a fixed wait raced the build and lost on a loaded machine.
 
     interrupted = threading.Event()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *a: interrupted.set())
     clock = _ClockWatch(env, py)
     code = 0
+    t_start, heartbeat = time.monotonic(), time.monotonic()
     try:
         while not interrupted.is_set():
             if node.poll() is not None:
-                print(f"run_scene: the node exited with {node.returncode}", flush=True)
+                print(f"run_scene: the node exited with {node.returncode}"
+                      + ("" if ready.is_set() else " before it was ready (see its messages above)"),
+                      flush=True)
                 code = node.returncode or 1
                 break
+            if not ready.is_set():
+                if time.monotonic() - heartbeat >= 10.0:
+                    heartbeat = time.monotonic()
+                    print(f"run_scene: waiting for the node to build its model "
+                          f"({heartbeat - t_start:.0f} s so far; the first run of a scene builds and "
+                          f"caches its precompute)", flush=True)
+                time.sleep(0.1)
+                continue
+            if timeline:
+                timeline = False
+                print(f"run_scene: node ready after {time.monotonic() - t_start:.1f} s; "
+                      f"starting the timeline publisher", flush=True)
+                start("timeline", [str(HERE / "force_publisher.py"), "timeline", args.scene]
+                      + (["--unpause"] if unpause else []))
             t = clock.time()
             if t is not None and t >= duration:
                 print(f"run_scene: sim time {t:.3f} s >= duration {duration:g} s: stopping", flush=True)
