@@ -27,7 +27,6 @@ setup(
     maintainer_email="mdss@example.com",
     description="Multi-domain subspace simulation of deformable bodies for ROS 2",
     license="Apache-2.0",
-    tests_require=["pytest"],
     python_requires=">=3.11",
     entry_points={
         "console_scripts": [

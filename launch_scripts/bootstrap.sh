@@ -40,11 +40,25 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
     echo "mdss bootstrap: creating $venv with $py ($("$py" --version 2>&1))" >&2
     "$py" -m venv "$venv" || die "could not create a venv with $py"
   fi
-  echo "mdss bootstrap: installing pinned requirements (first time takes a few minutes)" >&2
-  "$venv/bin/python" -m pip install -q --upgrade pip >&2 || die "pip upgrade failed (no access to the Python package index?)"
-  "$venv/bin/python" -m pip install -q -r "$root/requirements.txt" -c "$root/requirements.lock.txt" >&2 \
+  # pip's own output goes to a log, shown only when a step fails: a successful install
+  # prints three progress lines and nothing else (setuptools' editable-install banner and
+  # build warnings are noise to a user).
+  log="$venv/bootstrap.log"
+  : > "$log"
+  quiet() { "$@" >>"$log" 2>&1 || { cat "$log" >&2; return 1; }; }
+  t0=$SECONDS
+  echo "mdss bootstrap: [1/3] installing pinned requirements (first time: a few minutes; log in $log)" >&2
+  quiet "$venv/bin/python" -m pip install -q --upgrade pip || die "pip upgrade failed (no access to the Python package index?)"
+  quiet "$venv/bin/python" -m pip install -q -r "$root/requirements.txt" -c "$root/requirements.lock.txt" \
     || die "installing requirements.txt failed; see pip's message above"
-  "$venv/bin/python" -m pip install -q --no-deps -e "$root" >&2 || die "installing mdss_ros itself failed"
+  echo "mdss bootstrap: [2/3] installing mdss_ros itself (editable)" >&2
+  quiet "$venv/bin/python" -m pip install -q --no-deps -e "$root" || die "installing mdss_ros itself failed"
+  # numba compiles each kernel on first use; doing it here (cached in the venv) keeps that
+  # cost out of the user's first scene, where it looked like a hang (mdss_ros/warmup.py).
+  echo "mdss bootstrap: [3/3] compiling the numba kernels once into $venv/numba_cache (about 30 s on 2 cores)" >&2
+  quiet env NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$venv/numba_cache}" "$venv/bin/python" -m mdss_ros.warmup \
+    || die "compiling the numba kernels failed; see the message above"
+  echo "mdss bootstrap: ready in $((SECONDS - t0)) s" >&2
   echo "$want" > "$venv/.mdss_stamp"
 fi
 "$venv/bin/python" -c 'import rclpy, numpy, scipy, numba' >/dev/null 2>&1 \

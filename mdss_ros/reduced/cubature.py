@@ -130,7 +130,7 @@ def domain_force_columns(dom, Q, max_candidates=40000, seed=0, chunk=20000):
         ids = np.arange(lo, min(m, lo + chunk))
         G = sample_jacobians(dom.U3, fm.tets[ids], fm.geom.grads[ids])
         out = np.empty((len(Q), dom.r, len(ids)))
-        contributions(G, fm.geom.volume[ids], Qc, fm.material.kind_id, fm.material.params, out)
+        contributions(G, fm.geom.volume[ids], Qc, fm.material.kind_id, fm.material.params, False, False, out)
         A_chunk = out.reshape(len(Q) * dom.r, len(ids))
         b += A_chunk.sum(axis=1)
         cols.append(A_chunk[:, is_cand[ids]])

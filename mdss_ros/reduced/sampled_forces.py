@@ -46,11 +46,16 @@ def _deformation_gradient(G_s, q, F):
 
 
 @njit(cache=True, parallel=True)
-def sampled_kernel(G, wV, q, kind_id, params, want_hessian, energy_out, g_out, WG_out, CG_out):
+def sampled_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, WG_out, CG_out):
     """Per-sample energy, reduced force and the two factors of the reduced stiffness.
 
-    G (s, 9, r); wV (s,) weight times rest volume; q (r,).
+    G (s, 9, r); wV (s,) weight times rest volume; q (r,); project: clamp each sample's
+    dP/dF to positive semi-definite (the reduced step passes False).
     energy_out (s,), g_out (s, r), WG_out, CG_out (s, 9, r): K = sum_s WG_s^T CG_s.
+
+    The flags are arguments from Python, never literals in njit code: numba compiles a
+    separate copy of material_point_ws (every material inlined) for each literal flag
+    combination, and three copies made a fresh install's first scene compile for ~3x longer.
     """
     s_count, _, r = G.shape
     n_chunks = (s_count + _CHUNK - 1) // _CHUNK
@@ -61,7 +66,7 @@ def sampled_kernel(G, wV, q, kind_id, params, want_hessian, energy_out, g_out, W
         work = np.empty(WORK_LEN)
         for s in range(c * _CHUNK, min(s_count, (c + 1) * _CHUNK)):
             _deformation_gradient(G[s], q, F)
-            psi = material_point_ws(kind_id, F, params, P, C, want_hessian, False, work)
+            psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
             w = wV[s]
             energy_out[s] = w * psi
             for b in range(r):
@@ -116,7 +121,7 @@ class SampledDomainForces:
         WG = np.empty((s, 9, r)) if want_hessian else np.empty((1, 9, r))
         CG = np.empty((s, 9, r)) if want_hessian else np.empty((1, 9, r))
         sampled_kernel(self.G, self.weights * self.volume, np.ascontiguousarray(q, dtype=np.float64),
-                       self.material.kind_id, self.material.params, want_hessian, e, g, WG, CG)
+                       self.material.kind_id, self.material.params, bool(want_hessian), False, e, g, WG, CG)
         if not want_hessian:
             return float(e.sum()), g.sum(0), None
         K = WG.reshape(-1, r).T @ CG.reshape(-1, r)
@@ -124,11 +129,12 @@ class SampledDomainForces:
 
 
 @njit(cache=True, parallel=True)
-def contributions(G, volume, Q, kind_id, params, out):
+def contributions(G, volume, Q, kind_id, params, want_hessian, project, out):
     """Per-element reduced force at many poses, for cubature training.
 
-    G (m, 9, r); volume (m,); Q (T, r) training poses. out (T, r, m): column e of the
-    (T r) x m matrix whose weighted column sum is the reduced force at every pose.
+    G (m, 9, r); volume (m,); Q (T, r) training poses; want_hessian, project: pass False
+    (arguments, not literals, for the reason in sampled_kernel). out (T, r, m): column e of
+    the (T r) x m matrix whose weighted column sum is the reduced force at every pose.
     """
     m, _, r = G.shape
     T = Q.shape[0]
@@ -141,7 +147,7 @@ def contributions(G, volume, Q, kind_id, params, out):
         for e in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
             for t in range(T):
                 _deformation_gradient(G[e], Q[t], F)
-                material_point_ws(kind_id, F, params, P, C, False, False, work)
+                material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
                 for b in range(r):
                     acc = 0.0
                     for a in range(9):
