@@ -31,7 +31,7 @@ find_python() {
   Install one (Debian/Ubuntu: apt-get install python3.11 python3.11-venv) or set MDSS_PYTHON=/path/to/python3.11"
 }
 
-stamp_of() { cat "$root/requirements.txt" "$root/requirements.lock.txt" "$root/setup.py" | sha256sum | cut -c1-16; }
+stamp_of() { cat "$root/requirements.txt" "$root/requirements.lock.txt" "$root/requirements-peers.txt" "$root/setup.py" "$root/launch_scripts/bootstrap.sh" | sha256sum | cut -c1-16; }
 
 want="$(stamp_of)"
 if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != "$want" ]; then
@@ -51,6 +51,8 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
   quiet "$venv/bin/python" -m pip install -q --upgrade pip || die "pip upgrade failed (no access to the Python package index?)"
   quiet "$venv/bin/python" -m pip install -q -r "$root/requirements.txt" -c "$root/requirements.lock.txt" \
     || die "installing requirements.txt failed; see pip's message above"
+  quiet "$venv/bin/python" -m pip install -q -r "$root/requirements-peers.txt" -c "$root/requirements.lock.txt" \
+    || die "installing requirements-peers.txt (MuJoCo, the peer the reports compare against) failed; see pip's message above"
   echo "mdss bootstrap: [2/3] installing mdss_ros itself (editable)" >&2
   quiet "$venv/bin/python" -m pip install -q --no-deps -e "$root" || die "installing mdss_ros itself failed"
   # numba compiles each kernel on first use; doing it here (cached in the venv) keeps that
