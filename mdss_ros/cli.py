@@ -1,4 +1,4 @@
-"""`mdss` command line (DESIGN.md "Command line"). Each command prints what it did."""
+"""`mdss` command line (docs/architecture.md, "Contracts: Command line"). Each command prints what it did."""
 import argparse
 import json
 import os

@@ -1,6 +1,6 @@
 """Stability guard: detect a diverging step, roll it back and retry it more carefully.
 
-METHOD.md section 9 lists the known limits of the method: explicit fictitious forces, a
+docs/method.md §15 lists the known limits of the method: explicit fictitious forces, a
 single Newton iteration, stiff or nearly incompressible materials, fast rotation. Rather
 than make every step expensive, the Simulator steps as configured and this guard checks
 the result. After every step it measures the state and looks for

@@ -1,4 +1,4 @@
-"""The ROS 2 node (DESIGN.md "ROS interface (contract)"): a thin shell over Simulator.
+"""The ROS 2 node (docs/architecture.md, "Contracts: ROS interface"): a thin shell over Simulator.
 
     mdss_node --ros-args --params-file config/params.yaml -p scene:=cantilever
     python -m mdss_ros.node --ros-args -p scene:=msg_scenes/cantilever.yaml

@@ -369,7 +369,7 @@ def _check_model(model, source):
 def model_config(scene):
     """The `model` section a scene's model is built from: the file's, plus what the scene
     implies. A collider's `reach` region (the part of the body it can touch) becomes a
-    full-space domain `<collider>_reach` of a reduced model (METHOD.md section 8): contact
+    full-space domain `<collider>_reach` of a reduced model (docs/method.md §12): contact
     there is resolved on every vertex, the rest stays reduced. Returns a new dict."""
     model = copy.deepcopy(scene["model"])
     if model["kind"] != "reduced":

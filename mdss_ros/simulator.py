@@ -1,4 +1,4 @@
-"""The Simulator facade (DESIGN.md "Python API"): one API over every model kind.
+"""The Simulator facade (docs/architecture.md, "Contracts: Python API"): one API over every model kind.
 
 It owns the inputs (handle wrenches, point forces, collider poses, gravity), turns
 them into per-vertex external forces each step, and delegates the dynamics to the

@@ -1,4 +1,4 @@
-"""Domain bases (METHOD.md section 3): linear modes, modal derivatives, mass-PCA, rigid complement."""
+"""Domain bases (docs/method.md §6): linear modes, modal derivatives, mass-PCA, rigid complement."""
 import numpy as np
 import pytest
 import scipy.linalg as sla

@@ -1,4 +1,4 @@
-"""The ROS node as real processes (DESIGN.md "ROS interface (contract)").
+"""The ROS node as real processes (docs/architecture.md, "Contracts: ROS interface").
 
 Each test starts the node, a probe (a separate rclpy process that subscribes, calls
 services and publishes on request) and, where the issue asks for it, a separate

@@ -1,4 +1,4 @@
-"""Vertex-based domain partition (METHOD.md section 2) and the block elimination order."""
+"""Vertex-based domain partition (docs/method.md §5) and the block elimination order."""
 
 import itertools
 

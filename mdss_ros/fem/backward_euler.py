@@ -1,6 +1,6 @@
 """Backward Euler with Newton iterations on the end-of-step velocity.
 
-Equation (METHOD.md section 1, sign convention f_int = dE/dx):
+Equation (docs/method.md §4; sign convention f_int = dE/dx, §1):
 
     r(v') = M (v' - v) + dt (D v' + f_int(x + dt v') - f_ext) = 0,   x' = x + dt v'
     D = alpha M + beta K(x)      (Rayleigh, stiffness frozen at the start of the step)

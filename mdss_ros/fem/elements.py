@@ -3,7 +3,7 @@
 Symbols: n_verts vertices, n_tets elements. A tet (a0, a1, a2, a3) is positively
 oriented: det Dm > 0 with Dm = [X1-X0, X2-X0, X3-X0].
 
-Sign convention (METHOD.md section 1): f_int = dE/dx, the gradient of the elastic
+Sign convention (docs/method.md §1): f_int = dE/dx, the gradient of the elastic
 energy, i.e. minus the force the element exerts; K = d f_int / dx.
 
 With shape-function gradients g_a = dN_a/dX (g_{k+1} = row k of Dm^-1,

@@ -1,7 +1,7 @@
 """The ROS messages of a run without a ROS graph: what the node receives and publishes.
 
 A headless run (`mdss run --mcap`) and a replay (`mdss replay`) build here the same
-messages the node exchanges (DESIGN.md "ROS interface"), under the node's namespace
+messages the node exchanges (docs/architecture.md, "Contracts: ROS interface"), under the node's namespace
 (default `/mdss`), so a recording of either opens like a bag of the node. The message
 building itself is mdss_ros.ros.convert (the node's converters); this module adds only
 what recording needs on top:

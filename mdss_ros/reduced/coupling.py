@@ -2,7 +2,7 @@
 
 Their forces and stiffness are evaluated in the world frame from the world positions of
 their vertices (which come from different frames), then mapped to the generalised DOFs
-of every domain they touch with the velocity map J (METHOD.md sections 5-6):
+of every domain they touch with the velocity map J (docs/method.md §8-9):
 
     subspace vertex l of domain i:  xd_l = J_l [qd_i; v_i; w_i],
                                     J_l = [R_i U_l, I3, -[x_l - c_i]x]   (3 x (r_i + 6))
@@ -13,7 +13,7 @@ of every domain they touch with the velocity map J (METHOD.md sections 5-6):
     generalised tangent A += J_a^T K_e[a, b] J_b    (for every vertex pair a, b of e)
 
 so the reduced force on domain i is sum U_l^T R_i^T f_l, its force sum f_l and its
-torque sum (x_l - c_i) x f_l, exactly the F_ij, f_ij, tau_ij of section 5. One kernel
+torque sum (x_l - c_i) x f_l, exactly the F_ij, f_ij, tau_ij of docs/method.md §8. One kernel
 serves any element size (tets: 4 vertices; springs of the spring-coupling foil: 2).
 
 Generalised DOFs are split into the subspace part (dense, size S) and the full-space

@@ -1,4 +1,4 @@
-"""Cubature by greedy non-negative least squares (An, Kim and James 2008; METHOD.md section 7).
+"""Cubature by greedy non-negative least squares (An, Kim and James 2008; docs/method.md §13).
 
 Given training poses t = 1..T and candidate elements e, the reduced force at pose t is
 b_t = sum_e a_{e,t} (every element, weight 1). Cubature keeps a few elements S with

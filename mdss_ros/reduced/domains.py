@@ -2,7 +2,7 @@
 
 A subspace domain owns its vertices X_i, its domain elements E_i (evaluated exactly in
 its own frame, where elasticity does not see the rigid motion) and its basis U_i.
-A full-space domain (METHOD.md section 8) keeps every vertex of X_i as an unknown in
+A full-space domain (docs/method.md §12) keeps every vertex of X_i as an unknown in
 the world frame; its elements can be cut at run time.
 """
 import time

@@ -1,4 +1,4 @@
-"""Per-domain subspace bases: linear modes plus modal derivatives, mass-PCA (METHOD.md section 3).
+"""Per-domain subspace bases: linear modes plus modal derivatives, mass-PCA (docs/method.md §6).
 
 A domain is a rigid frame plus a subspace ``x_l = c + R (r_l + U_l q)``. Its basis U must be
 mass-orthonormal (``U^T M U = I``) and, when the domain has rigid DOFs, mass-orthogonal to the

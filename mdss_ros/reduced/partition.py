@@ -1,4 +1,4 @@
-"""Vertex-based partition of a tet mesh into domains (METHOD.md section 2).
+"""Vertex-based partition of a tet mesh into domains (docs/method.md §5).
 
 The vertex set is split into d disjoint sets X_i, either automatically
 (``partition_vertices``: METIS on the vertex adjacency graph, then a
@@ -9,7 +9,7 @@ specs seed the domains, the rest is filled by nearest graph distance).
 - E_i, the domain elements: tets whose four vertices all lie in X_i;
 - the coupling elements: tets whose vertices lie in two or more domains.
   Tets touching three or four domains are kept (the coupling formulas of
-  section 5 sum over each vertex's own domain, so they apply unchanged);
+  docs/method.md §8 sum over each vertex's own domain, so they apply unchanged);
 - the interfaces E_ij (i < j): coupling tets touching both i and j, so a tet
   touching three domains is listed under each of its three pairs;
 - the domain graph (neighbours, sorted edge list).

@@ -1,5 +1,5 @@
 """The multi-domain subspace model (`model.kind: reduced`), stepped by one unified
-implicit solve over all domains (METHOD.md section 6):
+implicit solve over all domains (docs/method.md §9):
 
     A Q' = b
     A = Mgen + dt Dgen + dt^2 Kgen,    Dgen = alpha Mgen + beta Kgen(step start)
@@ -9,7 +9,7 @@ Q stacks, per subspace domain, [qd_i; v_i; w_i] (a domain holding pins: qd_i onl
 the velocities of the free vertices of full-space domains. Mgen = blockdiag(I_r, m_i I3,
 I_i(world)) and lumped masses for full-space vertices. Kgen holds U_i^T K_i U_i of each
 domain's elements (evaluated in the domain frame), J_e^T K_e J_e of every coupling
-element, and the full-space stiffness. Fictitious forces (section 4) and the gyroscopic
+element, and the full-space stiffness. Fictitious forces (docs/method.md §7) and the gyroscopic
 term -w x I w are explicit, as in the paper. After the solve:
 q' = q + dt qd', c' = c + dt v', R' = exp([dt w']x) R, x' = x + dt xd' (full space).
 

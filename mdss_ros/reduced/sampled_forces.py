@@ -4,7 +4,7 @@
     vec(F_s) = vec(I) + G_s q,                      C_s = dP/dF at F_s
 
 For a linear tet in the domain frame, F is affine in q: G_s = d vec(F)/dq (9 x r) is
-constant, so it is precomputed (An, Kim and James 2008; DESIGN.md performance notes).
+constant, so it is precomputed (An, Kim and James 2008; docs/method.md §13.1).
 A step evaluates P and dP/dF at the samples only (numba, no allocation in the loop) and
 forms K as one GEMM over the stacked samples. With every element a sample of weight 1
 this is exactly the domain's full reduced force and stiffness.

@@ -1,4 +1,4 @@
-"""Training poses for cubature (METHOD.md section 7).
+"""Training poses for cubature (docs/method.md §13.2).
 
 A simulation drives the body with random forces on each domain (a patch of the domain's
 surface, new direction and magnitude every `hold` steps) and keeps a snapshot of all vertex

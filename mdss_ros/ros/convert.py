@@ -29,7 +29,7 @@ from std_msgs.msg import Header
 SURFACE_POINT_DTYPE = np.dtype({"names": ["x", "y", "z", "domain"],
                                 "formats": ["<f4", "<f4", "<f4", "u1"],
                                 "offsets": [0, 4, 8, 12], "itemsize": 16})
-#: ~/contacts layout (DESIGN.md): position, normal, depth, force on the body.
+#: ~/contacts layout (docs/architecture.md, "Contracts: ROS interface"): position, normal, depth, force on the body.
 CONTACT_FIELDS = ("x", "y", "z", "nx", "ny", "nz", "depth", "fx", "fy", "fz")
 CONTACT_DTYPE = np.dtype([(f, "<f4") for f in CONTACT_FIELDS])
 

@@ -1,4 +1,4 @@
-"""Closed-form results the solvers are checked against (METHOD.md sections 11-12).
+"""Closed-form results the solvers are checked against (docs/method.md §16).
 
 Beams are rectangular, width b (y), height h (z, the bending direction), length L.
 """

@@ -1,4 +1,4 @@
-"""Hertz contact verification (`mdss verify hertz`; METHOD.md section 11, the second paper's
+"""Hertz contact verification (`mdss verify hertz`; docs/method.md §16.3, the second paper's
 Figs. 3 and 5 and its timing comparison).
 
 Setup (the paper's): an elastic cube of edge `block` (2 m), top face z = 0 centred on the
@@ -31,7 +31,7 @@ error jumps with the force (a/h = 2: -6.7 % at 0.4 F_max, -2.7 % at 0.8 F_max).
 A resolution level n means h = a_ref / n, a_ref the contact radius at the largest force.
 Models: full-space FEM at every level; the reduced model at the reduced levels with the
 contact zone (a box of half-width reduced_zone x a_ref round the contact) as a full-space
-domain (METHOD.md section 8) and the rest of the block one pinned subspace domain
+domain (docs/method.md §12) and the rest of the block one pinned subspace domain
 (`reduced_modes` linear modes). Its far field is what the subspace adds to the error: at
 a/h = 2 a zone of 3 a_ref gave -12 %, 6 a_ref -8.6 %, 10 a_ref -7.3 % (30 modes) and -6.7 %
 (80 modes), against -5.5 % for full-space FEM on the same mesh (0.25 F_max).

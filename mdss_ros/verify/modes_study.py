@@ -5,7 +5,7 @@ Frequencies come from the model linearised at rest, with no time stepping:
 - full space: the generalised eigenproblem K phi = w^2 M phi of the free DOFs (lumped M,
   shift-invert Lanczos at 0);
 - reduced: the unified system matrix is A(dt) = Mgen + dt^2 Kgen with damping off
-  (METHOD.md section 6), so two evaluations at dt1, dt2 give Mgen and Kgen exactly, and
+  (docs/method.md §9), so two evaluations at dt1, dt2 give Mgen and Kgen exactly, and
   eigh(Kgen, Mgen) gives the reduced model's own frequencies (frames, modes and coupling
   included). A Galerkin reduction can only stiffen: reduced frequencies are >= the full
   model's on the same mesh, which the report checks.
