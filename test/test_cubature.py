@@ -36,11 +36,35 @@ def test_training_poses_are_deformed_and_in_best_fit_frames(small):
     assert training.n_poses == 30 and training.source == "full"
     for k, dom in enumerate(sim.model.subspace):
         assert np.abs(training.q[k]).max() > 1e-4
-    # The reconstruction from (c, R, q) is close to the snapshot it came from.
-    x = training.positions[-1]
-    xr = training.reconstructed(sim.model, training.n_poses - 1)
-    u = x - sim.rest_positions()
-    assert np.linalg.norm(xr - x) < 0.5 * np.linalg.norm(u)
+    X = sim.rest_positions()
+    for t in range(training.n_poses):
+        x = training.positions[t]
+        for k, dom in enumerate(sim.model.subspace):
+            xs, c, R, q = x[dom.vertices], training.c[t, k], training.R[t, k], training.q[k][t]
+            np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=1e-12)
+            assert abs(np.linalg.det(R) - 1.0) < 1e-12
+            if dom.movable:
+                # Best rigid fit: c the mass centre, R the rotation of the polar decomposition
+                # of A = sum m (x - c) r^T, i.e. R^T A symmetric positive semi-definite (R
+                # maximises tr(R^T A)). Exact in theory; measured round-off <= 4e-17 relative.
+                np.testing.assert_allclose(c, (dom.mass[:, None] * xs).sum(0) / dom.total_mass, rtol=0, atol=1e-12)
+                S = R.T @ (((xs - c) * dom.mass[:, None]).T @ dom.r_local)
+                assert np.abs(S - S.T).max() <= 1e-12 * np.abs(S).max()
+                assert np.linalg.eigvalsh(0.5 * (S + S.T)).min() > 0.0   # measured >= 0.045 x the largest
+            else:                                   # pinned domain: the rest frame
+                np.testing.assert_array_equal(c, dom.cbar)
+                np.testing.assert_array_equal(R, np.eye(3))
+            # q is the mass-orthogonal projection: the rest of the local displacement is
+            # M-orthogonal to the basis (measured <= 7e-16 relative).
+            Mw = np.repeat(dom.mass, 3)
+            u = ((xs - c) @ R - dom.r_local).reshape(-1)
+            assert np.abs(dom.U.T @ (Mw * (u - dom.U @ q))).max() <= 1e-12 * np.abs(dom.U.T @ (Mw * u)).max()
+        # The reconstruction from (c, R, q) is close to the snapshot it came from: what is
+        # left is the part of the full-FEM pose outside 8 modes per domain. Measured 0.19 %
+        # of |u| at the last pose, 1.01 % at the worst of the 30; deterministic up to round-off,
+        # 2 % bounds every pose with a 2x margin for other eigensolver/factorisation builds.
+        xr = training.reconstructed(sim.model, t)
+        assert np.linalg.norm(xr - x) < 0.02 * np.linalg.norm(x - X), t
 
 
 def test_greedy_nnls_finds_a_sparse_exact_rule():

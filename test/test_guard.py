@@ -119,9 +119,14 @@ def test_guard_rolls_back_an_injected_divergence_and_recovers(sim, monkeypatch, 
     assert abs(sim.time - 4 * sim.dt) < 1e-12
     # The retry (more Newton iterations) starts from the rolled-back state: it lands near
     # the clean one-iteration step, not near the spoiled state.
+    # Measured (full / reduced): positions within 2.3e-5 / 2.0e-5 m of the reference (tip
+    # deflection 18 mm), kinetic energy +0.042 % / -0.046 % of it (0.56 J): one step of
+    # backward Euler solved with 4 Newton iterations instead of 1, a linearisation
+    # difference, not round-off. Bounds ~5-10x that; the spoiled state is off by orders of
+    # magnitude (x100 velocities: 1e4 x the kinetic energy).
     reference.step()
-    assert np.abs(sim.vertex_positions() - reference.vertex_positions()).max() < 1e-3
-    assert sim.energy()["kinetic"] < 10 * reference.energy()["kinetic"] + 1e-6
+    assert np.abs(sim.vertex_positions() - reference.vertex_positions()).max() < 1e-4
+    assert sim.energy()["kinetic"] == pytest.approx(reference.energy()["kinetic"], rel=5e-3)
 
 
 def test_guard_never_lets_a_nan_out_and_keeps_the_last_good_state(sim, monkeypatch):

@@ -1,4 +1,4 @@
-"""Hertz contact (METHOD.md section 11): a rigid sphere pressed into a graded 2 m block.
+"""Hertz contact (docs/method.md §16.3): a rigid sphere pressed into a graded 2 m block.
 
 The fast test runs full-space FEM at one named resolution; the slow test runs
 `mdss verify hertz --quick` and checks its JSON. Both use mdss_ros.verify.hertz_study, whose
@@ -62,7 +62,7 @@ def test_hertz_full_fem_indentation_within_5_percent_at_a_over_h_3():
 @pytest.mark.slow
 def test_verify_hertz_quick_report(tmp_path):
     from mdss_ros.cli import main
-    main(["verify", "hertz", "--out", str(tmp_path), "--quick"])
+    assert main(["verify", "hertz", "--out", str(tmp_path), "--quick"]) == 0
     data = json.loads((tmp_path / "hertz.json").read_text())
     rows = data["rows"]
     full = sorted((r for r in rows if r["kind"] == "full"), key=lambda r: r["dofs"])

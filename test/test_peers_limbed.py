@@ -131,7 +131,11 @@ def test_limbed_comparison_on_a_tiny_body(tmp_path, monkeypatch):
     assert fem["rms_vs_fem"] == 0.0 and fem["tip_loaded"] == 0.0
     # The tip force lifts its arm while gravity pulls the other one down.
     assert fem["tip_displacement"]["armx_tip"][2] > 0 > fem["tip_displacement"]["army_tip"][2]
-    assert 0.0 < ours["rms_vs_fem"] < 1.0 and ours["domains"] == 3
+    # 3 domains x 6 modes vs the full FEM: measured rms 3.47 % of the peak displacement. The
+    # eigenvalues at every domain's mode cut are well separated (no degenerate pair split),
+    # so other platforms differ by round-off; 4 % leaves room for other solver paths
+    # (dense/ARPACK eigensolver, sparse factorisation) and fails a real loss of accuracy.
+    assert 0.0 < ours["rms_vs_fem"] < 0.04 and ours["domains"] == 3
     assert ours["fit"]["fit_energy_ratio"] > 0 and set(ours["fit"]["fit_misfit"]) == {"hub", "armx", "army"}
     assert (tmp_path / "tradeoff_peers_limbed.png").stat().st_size > 10000
     if "skipped" in res["mujoco"]:
