@@ -3,13 +3,16 @@
 Everything here is geometry and bookkeeping shared by every model kind; it is built
 once from the scene and never changes during a run.
 """
+import hashlib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from .errors import MeshError, SceneError
 from .fem.materials import make_material
 from .mesh import box, composite, extract_surface, graded_block, load_mesh, select_vertices, sheet
+from .mesh.io import SURFACE_EXTENSIONS
 from .mesh.voxels import voxel_body
 
 
@@ -29,14 +32,18 @@ class Body:
 _GENERATORS = {"box": box, "sheet": sheet, "graded_block": graded_block, "voxels": voxel_body}
 
 
-def build_mesh(spec, base_dir, source="<scene>"):
-    """TetMesh from a scene's body.mesh mapping (a generator or a file)."""
+def build_mesh(spec, base_dir, source="<scene>", cache=None):
+    """TetMesh from a scene's body.mesh mapping (a generator or a file). cache: the
+    PrecomputeCache that keeps tetrahedralised surface files (default: the user's)."""
     spec = dict(spec)
     where = f"{source}: body.mesh"
     try:
         if "file" in spec:
             path = base_dir / spec.pop("file")
-            mesh = load_mesh(path, **spec)
+            if path.suffix.lower() in SURFACE_EXTENSIONS and path.is_file():
+                mesh = _tetrahedralised_surface(path, spec, cache)
+            else:
+                mesh = load_mesh(path, **spec)
         elif "generator" in spec:
             gen = spec.pop("generator")
             if gen == "composite":
@@ -56,10 +63,35 @@ def build_mesh(spec, base_dir, source="<scene>"):
     return mesh
 
 
-def build_body(scene):
-    """Body of a validated Scene."""
+def _tetrahedralised_surface(path, spec, cache):
+    """load_mesh of a surface file, kept in the precompute cache under the file's bytes,
+    the meshing options and the mesher's code. fTetWild does not mesh the same surface the
+    same way twice, so without this every start of a surface-file scene got a new tet mesh:
+    its precompute never hit the cache, and recordings of two runs had different topology."""
+    import pytetwild
+
+    from .mesh.tetmesh import TetMesh
+    from .precompute import PrecomputeCache, cache_key, code_fingerprint
+
+    cache = cache if cache is not None else PrecomputeCache()
+    here = Path(__file__).resolve().parent / "mesh"
+    code = [code_fingerprint((here / name).read_text()) for name in ("io.py", "tetrahedralize.py")]
+    key = cache_key(hashlib.sha256(path.read_bytes()).hexdigest(), spec,
+                    getattr(pytetwild, "__version__", "?"), code)
+    hit = cache.load("tetmesh", key)
+    if hit is not None:
+        arrays, _ = hit
+        return TetMesh(arrays["vertices"], arrays["tets"])
+    mesh = load_mesh(path, **spec)
+    cache.save("tetmesh", key, {"vertices": mesh.vertices, "tets": mesh.tets},
+               {"file": str(path), "options": {k: v for k, v in spec.items()}})
+    return mesh
+
+
+def build_body(scene, cache=None):
+    """Body of a validated Scene. cache: PrecomputeCache for tetrahedralised surface files."""
     src = scene.source
-    mesh = build_mesh(scene["body"]["mesh"], scene.base_dir, src)
+    mesh = build_mesh(scene["body"]["mesh"], scene.base_dir, src, cache)
     try:
         material = make_material(scene["body"]["material"])
     except SceneError as err:

@@ -48,7 +48,7 @@ class Simulator:
         from .budget import resolve_budget
         scene, self.budget = resolve_budget(scene, progress, cache)    # model.budget: probe once, cached
         self.scene = scene
-        self.body = build_body(scene)
+        self.body = build_body(scene, cache)
         self.model = build_model(scene, self.body, progress, cache)
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)

@@ -113,3 +113,40 @@ def test_load_errors_name_the_problem(tmp_path):
         load_mesh(degenerate)
     with pytest.raises(MeshError, match="cannot save"):
         save_mesh(tmp_path / "out.obj", box(size=(1, 1, 1), cell=1.0))
+
+
+def _surface_scene(tmp_path, **mesh):
+    if not (tmp_path / "pad.obj").exists():
+        trimesh.creation.capsule(height=0.04, radius=0.01, count=[12, 12]).export(tmp_path / "pad.obj")
+    return {"name": "pad", "body": {"mesh": {"file": str(tmp_path / "pad.obj"), "edge_length": 0.006, **mesh},
+                                    "material": {"model": "neohookean", "young": 2e5, "poisson": 0.4,
+                                                 "density": 1100}},
+            "pins": [{"box": [[-1, -1, -1], [1, 1, -0.026]]}],
+            "model": {"kind": "reduced", "domains": {"count": 2}, "modes": 6,
+                      "cubature": {"samples": 0, "interface": "exact"}}}
+
+
+def test_a_surface_scene_loaded_twice_gets_the_same_tets_and_builds_nothing(tmp_path):
+    """fTetWild meshes a surface differently each time; the body keeps the first result in
+    the precompute cache (keyed by the file's bytes and the options), so a second start has
+    the same topology and hits the bases and cubature cache."""
+    from mdss_ros import Simulator, load_scene
+    from mdss_ros.precompute import PrecomputeCache
+    scene = load_scene(_surface_scene(tmp_path))
+    first = Simulator(scene, cache=PrecomputeCache(tmp_path / "cache"))
+    cache = PrecomputeCache(tmp_path / "cache")
+    second = Simulator(scene, cache=cache)
+    np.testing.assert_array_equal(second.tetrahedra(), first.tetrahedra())
+    np.testing.assert_array_equal(second.rest_positions(), first.rest_positions())
+    assert {(stage, what) for stage, what, _ in cache.events} == {("tetmesh", "hit"), ("bases", "hit")}
+    # Another edge length, or another file content, is meshed anew.
+    # Another edge length, or another file content, is meshed anew.
+    from mdss_ros.body import build_body
+    other = PrecomputeCache(tmp_path / "cache")
+    build_body(load_scene(_surface_scene(tmp_path, edge_length=0.008)), other)
+    assert [(s, w) for s, w, _ in other.events] == [("tetmesh", "miss"), ("tetmesh", "saved")]
+    trimesh.creation.capsule(height=0.05, radius=0.01, count=[12, 12]).export(tmp_path / "pad.obj")
+    other = PrecomputeCache(tmp_path / "cache")
+    longer = build_body(load_scene(_surface_scene(tmp_path)), other)
+    assert [(s, w) for s, w, _ in other.events] == [("tetmesh", "miss"), ("tetmesh", "saved")]
+    assert np.ptp(longer.vertices[:, 2]) > np.ptp(first.rest_positions()[:, 2]) + 0.009
