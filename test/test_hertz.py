@@ -59,7 +59,7 @@ def test_hertz_full_fem_indentation_within_5_percent_at_a_over_h_3():
     assert np.all(np.diff(forces) > 0)
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_verify_hertz_quick_report(tmp_path):
     from mdss_ros.cli import main
     assert main(["verify", "hertz", "--out", str(tmp_path), "--quick"]) == 0

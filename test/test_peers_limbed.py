@@ -150,7 +150,7 @@ def test_limbed_comparison_on_a_tiny_body(tmp_path, monkeypatch):
     assert res["summary"] and res["table"].count("\n") >= len(res["rows"]) + 1
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_quick_limbed_comparison_through_mdss_tradeoff(tmp_path):
     from mdss_ros.cli import main
     assert main(["tradeoff", "msg_scenes/star_limbs.yaml", "--out", str(tmp_path), "--quick",

@@ -57,6 +57,7 @@ def test_free_multidomain_body_conserves_linear_momentum():
     assert np.abs(p - p0).max() <= 1e-10 * np.linalg.norm(p0)
 
 
+@pytest.mark.claims
 def test_spinning_free_body_angular_momentum_drift_below_one_percent():
     """1000 steps at dt = 1/90 s of a 3-domain body spinning at 2 rad/s, L measured from
     the vertex velocities (deformation included). Full-space backward Euler loses about

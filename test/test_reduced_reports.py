@@ -37,7 +37,7 @@ def test_energy_smoke_tiny(tmp_path):
         assert r["t"][0] == 0.0 and r["total"][0] == pytest.approx(r["E0"])
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_energy_quick_one_step_keeps_more_energy(tmp_path):
     data = _run("energy", tmp_path)
     runs = _energy_runs(data)
@@ -56,7 +56,7 @@ def test_energy_quick_one_step_keeps_more_energy(tmp_path):
     assert runs[("0.001", "one_step")]["final_ratio"] > runs[("1/90", "one_step")]["final_ratio"]
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_coupling_quick_elements_beat_soft_springs(tmp_path):
     data = _run("coupling", tmp_path)
     assert {"config", "ground_truth", "variants", "plots", "table"} <= set(data)
@@ -76,7 +76,7 @@ def test_coupling_quick_elements_beat_soft_springs(tmp_path):
     assert element["rms_rel"] < v[("element", None, r_lo)]["rms_rel"]
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_reduced_quick_error_falls_with_modes(tmp_path):
     data = _run("reduced", tmp_path)
     assert {"config", "ground_truth", "rows", "plots", "table"} <= set(data)
@@ -92,7 +92,7 @@ def test_reduced_quick_error_falls_with_modes(tmp_path):
     assert rows[(1, 10)]["rms_rel"] < rows[(1, 5)]["rms_rel"]
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_cantilever_quick_errors_fall_with_refinement(tmp_path):
     data = _run("cantilever", tmp_path)
     full = [r for r in data["rows"] if r["kind"] == "full"]
@@ -109,7 +109,7 @@ def test_cantilever_quick_errors_fall_with_refinement(tmp_path):
     assert red["vs_full"]["frequency"] > -1e-9                       # a reduction only stiffens
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 def test_modes_quick_reduced_frequencies_approach_full_fem(tmp_path):
     data = _run("modes", tmp_path)
     rows = {r["config"]: r for r in data["rows"]}

@@ -36,7 +36,7 @@ def check_report(report):
     return failed
 
 
-@pytest.mark.slow
+@pytest.mark.claims
 @pytest.mark.timeout(3600)
 def test_stability_quick_matrix(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -1,8 +1,9 @@
 """`mdss tradeoff` (mdss_ros/verify/tradeoff.py) and its MuJoCo peers (verify/peers.py).
 
 Fast: the Pareto front, the table, the variant list, the probe schedule, the peer
-module's MJCF and its missing-MuJoCo path. Slow (--slow): the quick report end to end
-on the cantilever scene; the MuJoCo quadratic flex beam (skipped without mujoco).
+module's MJCF and its missing-MuJoCo path. Claims (run by default and in CI): the quick
+report end to end on the cantilever scene with the MuJoCo peer rows; the MuJoCo quadratic
+flex beam.
 """
 import json
 
@@ -117,18 +118,22 @@ def test_missing_mujoco_is_reported_with_the_install_hint(monkeypatch):
     assert mod is None and "requirements-peers.txt" in why and "mujoco==4.0.0" in why
 
 
-# ---------------------------------------------------------------------- slow
-@pytest.mark.slow
+# ---------------------------------------------------------------------- claims
+@pytest.mark.claims
 def test_quick_report_on_the_cantilever(tmp_path):
+    """README claims (trade-off front; peers on the clamped beam), re-measured at --quick size
+    with MuJoCo installed by the bootstrap (requirements-peers.txt)."""
     from mdss_ros.cli import main
-    assert main(["tradeoff", "msg_scenes/cantilever.yaml", "--out", str(tmp_path), "--quick",
-                 "--set", "tradeoff.peers=false"]) == 0
+    assert main(["tradeoff", "msg_scenes/cantilever.yaml", "--out", str(tmp_path), "--quick"]) == 0
     data = json.loads((tmp_path / "tradeoff.json").read_text())
     assert (tmp_path / "tradeoff_pareto.png").stat().st_size > 10000
     rows = {r["label"]: r for r in data["rows"]}
     assert not [r for r in data["rows"] if "failed" in r], [r.get("failed") for r in data["rows"]]
     scene, full = rows["scene"], rows["full space, 1 Newton iteration"]
     assert scene["kind"] == "reduced" and full["kind"] == "full"
+    # The README's row: the scene's model is within 2 % RMS of the ground truth over its
+    # timeline (full report, 4 s: 1.54 %; this 1 s quick run: 1.54 %).
+    assert scene["rms_rel"] < 0.02
     assert scene["step_ms"] < full["step_ms"] and scene["dofs"] < full["dofs"]
     for r in data["rows"]:
         for key in ("rms_rel", "max_rel", "tip_rel", "energy_rel"):
@@ -139,14 +144,34 @@ def test_quick_report_on_the_cantilever(tmp_path):
     # One-knob sanity the method predicts: more modes are not less accurate than half of them.
     assert scene["rms_rel"] < rows[next(k for k in rows if k.startswith("r = "))]["rms_rel"]
     assert scene["warm_cache_hit"] and scene["warm_build_s"] < scene["cold_build_s"]
+    _check_beam_peer_claims(data["peers"])
 
 
-@pytest.mark.slow
+def _check_beam_peer_claims(p):
+    """Accuracy parts of the README's beam peer claim (ms/step are reported, not asserted:
+    timings are for the benchmarks). Against our FEM statics on the same grid, one domain
+    at r = 12 has several times less RMS surface error than MuJoCo's quadratic flex (full
+    report: 0.46 % against 6.6 %), and every row sags like the closed form within the
+    locking of linear tets (about -20 %)."""
+    mj, why = peers.mujoco_module()
+    assert mj is not None, f"the claims need the MuJoCo peer: {why}"
+    assert p["mujoco"] == {"version": mj.__version__}
+    rows = {r["label"]: r for r in p["rows"]}
+    assert not [r for r in p["rows"] if "failed" in r]
+    quad = rows[f"MuJoCo {mj.__version__} flex dof=quadratic"]
+    ours = rows["mdss reduced: 1 domain"]
+    assert quad["settled"] and quad["finite"] and quad["step_ms"] > 0 and ours["step_ms"] > 0
+    assert ours["rms_rel_vs_fem"] < 0.01 and quad["rms_rel_vs_fem"] > 0.05
+    assert quad["rms_rel_vs_fem"] > 5.0 * ours["rms_rel_vs_fem"]
+    for r in p["rows"]:
+        assert -0.30 < (r["sag"] - p["closed_form_sag"]) / p["closed_form_sag"] < 0.0, r["label"]
+
+
+@pytest.mark.claims
 def test_mujoco_quadratic_flex_beam_sags_like_a_beam():
     from mdss_ros.body import build_body
     mj, why = peers.mujoco_module()
-    if mj is None:
-        pytest.skip(why)
+    assert mj is not None, f"the claims need the MuJoCo peer: {why}"
     scene = load_scene("msg_scenes/cantilever.yaml")
     geo = peers.beam_geometry(scene)
     r = peers.mujoco_flex_beam(mj, geo, "quadratic", timing_steps=20)
