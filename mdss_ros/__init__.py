@@ -18,7 +18,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 if sys.prefix != sys.base_prefix:
     os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(sys.prefix, "numba_cache"))
 
-__version__ = "0.1.0"
+from .version import __version__  # noqa: E402
 
 from .scene import load_scene  # noqa: E402
 from .simulator import Simulator  # noqa: E402

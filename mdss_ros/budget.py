@@ -27,34 +27,7 @@ import time
 
 from .errors import SceneError
 from .precompute import PrecomputeCache, cache_key
-
-DEFAULT_MODES = (4, 6, 8, 12, 16, 24, 32)
-KEYS = {"ms_per_step", "max_error", "horizon", "modes"}
-
-
-def check_budget(budget, source="<scene>"):
-    """Validate a model.budget mapping ({} = off); SceneError names what is wrong."""
-    if budget in (None, {}):
-        return {}
-    where = f"{source}: model.budget"
-    if not isinstance(budget, dict):
-        raise SceneError(f"{where}: expected a mapping like {{ms_per_step: 5}} or {{max_error: 0.02}}, got {budget!r}")
-    unknown = sorted(set(budget) - KEYS)
-    if unknown:
-        raise SceneError(f"{where}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(KEYS))})")
-    goals = [k for k in ("ms_per_step", "max_error") if k in budget]
-    if len(goals) != 1:
-        raise SceneError(f"{where}: give exactly one of ms_per_step or max_error, got {budget!r}")
-    for k in ("ms_per_step", "max_error", "horizon"):
-        v = budget.get(k)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0):
-            raise SceneError(f"{where}.{k}: expected a positive number, got {v!r}")
-    modes = budget.get("modes", DEFAULT_MODES)
-    if (not isinstance(modes, (list, tuple)) or not modes
-            or not all(isinstance(m, int) and not isinstance(m, bool) and m >= 1 for m in modes)):
-        raise SceneError(f"{where}.modes: expected a list of integers >= 1, got {modes!r}")
-    return dict(budget, modes=sorted(set(modes)))
-
+from .scene import BUDGET_DEFAULT_MODES as DEFAULT_MODES, check_budget, load_scene  # noqa: F401
 
 def candidate_overrides(model, modes):
     """Scene overrides of the candidate with `modes` per domain: cubature samples scaled
@@ -78,8 +51,8 @@ def probe(scene, progress=None, cache=None):
     """Walk the candidate ladder of a scene with a budget. Returns the report dict:
     {"goal", "target", "chosen": {"modes", "overrides"}, "met": bool, "candidates": [...],
     "horizon", "seconds"}."""
+    from .accuracy import ground_truth, metrics, play
     from .simulator import Simulator
-    from .verify.tradeoff import ground_truth, metrics, play
     say = progress or (lambda msg: None)
     budget = scene["model"]["budget"]
     goal = "ms_per_step" if "ms_per_step" in budget else "max_error"
@@ -126,7 +99,6 @@ def probe(scene, progress=None, cache=None):
 
 
 def _without_budget(scene):
-    from .scene import load_scene
     return load_scene(scene, {"model.budget": {}})
 
 
@@ -139,7 +111,6 @@ def budget_key(scene):
 def resolve_budget(scene, progress=None, cache=None):
     """(scene to build, budget report or None): a scene with model.budget gets the chosen
     modes and samples (from the cache, or from a probe that is then cached)."""
-    from .scene import load_scene
     budget = scene["model"].get("budget") or {}
     if not budget:
         return scene, None
@@ -158,3 +129,12 @@ def resolve_budget(scene, progress=None, cache=None):
         cache.save("budget", key, {}, meta=json.loads(json.dumps(report, default=float)))
         report["cached"] = False
     return load_scene(scene, report["chosen"]["overrides"]), report
+
+
+def build_simulator(scene, overrides=None, progress=None, cache=None):
+    """A Simulator of a scene (Scene, path, name or dict) with its model.budget resolved
+    first (probed once, then from the cache): what `mdss run`, the node and replay build."""
+    from .simulator import Simulator
+    scene = load_scene(scene, overrides)
+    scene, report = resolve_budget(scene, progress, cache)
+    return Simulator(scene, progress=progress, cache=cache, budget=report)

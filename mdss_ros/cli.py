@@ -29,10 +29,10 @@ def _peak_rss_mb():
 
 
 def _make_sim(args):
+    from .budget import build_simulator
     from .errors import MdssError
-    from .simulator import Simulator
     try:
-        return Simulator(args.scene, overrides=_parse_sets(args.set) or None)
+        return build_simulator(args.scene, overrides=_parse_sets(args.set) or None)
     except MdssError as err:
         raise SystemExit(f"mdss: {err}")
 
@@ -333,7 +333,8 @@ def bench_fem_scaling(args):
 
 def cmd_verify(args):
     """`mdss verify NAME --out DIR [--quick] [--set KEY=VALUE]`: reports in verify/reduced_reports.py."""
-    from .verify.reduced_reports import ReportError, run_reports
+    from .errors import ReportError
+    from .verify.reports import run_reports
     try:
         return run_reports(args.name, args.out, quick=args.quick, overrides=_parse_sets(args.set))
     except ReportError as err:
@@ -343,7 +344,7 @@ def cmd_verify(args):
 def cmd_tradeoff(args):
     """`mdss tradeoff SCENE --out DIR [--quick] [--set KEY=VALUE]`: verify/tradeoff.py."""
     from .errors import MdssError
-    from .verify.reduced_reports import ReportError
+    from .errors import ReportError
     from .verify.tradeoff import run_tradeoff
     try:
         run_tradeoff(args.scene, args.out, quick=args.quick, sets=_parse_sets(args.set))
@@ -369,8 +370,8 @@ def cmd_stability(args):
 def cmd_precompute(args):
     """Build (or load) a scene's precompute with progress, then summarise the cache."""
     from .errors import MdssError
+    from .budget import build_simulator
     from .precompute import PrecomputeCache
-    from .simulator import Simulator
     cache = PrecomputeCache(args.cache_dir) if args.cache_dir else PrecomputeCache()
     t0 = time.perf_counter()
     start = time.perf_counter()
@@ -380,7 +381,7 @@ def cmd_precompute(args):
 
     print(f"mdss precompute: cache folder {cache.folder}")
     try:
-        sim = Simulator(args.scene, overrides=_parse_sets(args.set) or None, progress=progress, cache=cache)
+        sim = build_simulator(args.scene, overrides=_parse_sets(args.set) or None, progress=progress, cache=cache)
     except MdssError as err:
         raise SystemExit(f"mdss precompute: {err}")
     total = time.perf_counter() - t0

@@ -11,7 +11,41 @@ mdss_ros.ros.convert), and decides *when*:
   wall time (real_time_factor <= 0: as fast as possible); each firing is one
   Simulator.step() followed by /clock and the outputs that are due, run after the
   input messages that arrived meanwhile. A late step is not made up for: under load
-  the measured real-time factor drops instead.
+  the measured real-time factor drops instead. That is clock_mode `source` (the
+  default); the two other modes step on an external clock instead (below).
+- Clock modes (parameter clock_mode, read-only). In `follow` and `lockstep` the node
+  creates no step timer, ignores real_time_factor and publishes no /clock (an MCAP
+  recording still gets a /clock record of the sim time every step, so `mdss replay`
+  works unchanged); it subscribes to /clock (rosgraph_msgs/Clock, BEST_EFFORT, depth
+  100: it matches reliable and best-effort masters alike, e.g. rclcpp's ClockQoS).
+  Sim time still starts at 0 and is step_count * physics_dt.
+  - `follow`: after each tick of master time T the node takes, one step per executor
+    cycle (inputs arriving in between are taken first, as in source mode), every step
+    that ends at or before T + CLOCK_EPS_S (10 ns, for masters that truncate to the
+    nanosecond): sim time never passes the master and lags it by less than one dt
+    once caught up. A master period that dt does not divide is no special case: steps
+    happen when they fit (90 Hz steps under a 50 Hz master: 1 or 2 per tick). A node
+    behind (a slow model, a start against a master already at T, a reset) runs its
+    steps back to back until it has caught up. ~/step is refused (the master drives).
+  - `lockstep`: one step per ~/step call (also while running) and one per /clock tick
+    whose time is later than the previous tick's (the first tick is compared with 0);
+    a tick at the same time steps nothing, and nothing else steps. Ticks that arrive
+    while a step runs are queued and each gets its step. Sim time is the number of
+    steps times dt, not the master's time (they agree when the master ticks by dt).
+  - The master jumps back (e.g. it was reset). follow: a tick earlier than the sim
+    time logs a warning and resets the simulation to t = 0 (as ~/reset_simulation,
+    recorded the same way), after which the node follows the master from there; a tick
+    earlier than the previous one but not earlier than the sim time only holds the
+    steps until the master passes the sim time again (nothing to undo). lockstep: a
+    tick earlier than the previous tick logs a warning, resets to t = 0, drops steps
+    still owed to earlier ticks and takes no step.
+  - Pause: follow keeps reading the master and catches up on unpause; lockstep ignores
+    ticks while paused (they are not made up for later) but ~/step still steps.
+  - /diagnostics reports clock_mode in every mode; in follow and lockstep also
+    clock_master_time (the last tick, 0 before one), clock_ticks, clock_jumps_back,
+    and clock_lag (master time minus sim time, follow) or clock_steps_pending
+    (lockstep). follow warns when clock_lag exceeds FOLLOW_LAG_WARN_S. The rule "how
+    many steps fit before T" is `steps_before`, the tick rules are `ExternalClock`.
 - Inputs take effect at a defined step, so a run is reproducible from its inputs. An
   input stamped s (sim time, from /clock) is applied just before the step that starts
   at the first sim time t with s <= t + dt/2 (stamps round to the nearest step, as
@@ -57,7 +91,7 @@ from .ros import convert
 from .ros import validate
 from .ros.validate import InputRejected, Limits
 from .scene import load_scene, read_yaml, resolve_scene_path, scene_search_path
-from .simulator import Simulator
+from .budget import build_simulator
 
 NODE_NAME = "mdss"
 DIAGNOSTIC_NAME = "mdss: simulation"
@@ -72,6 +106,10 @@ PARAMETERS = {
     "physics_dt": (0.0, "physics time step in s (default: the scene's model.integrator.dt)", False),
     "real_time_factor": (1.0, "sim seconds per wall second; <= 0 steps as fast as possible", True),
     "start_paused": (False, "start with physics paused (~/unpause_physics or ~/step to advance)", False),
+    "clock_mode": ("source", "source: a steady timer steps and /clock is published; follow: step to track an "
+                             "external /clock, never ahead of it; lockstep: one step per ~/step call or per "
+                             "external /clock tick that moves forward (follow, lockstep: no /clock published, "
+                             "real_time_factor ignored)", False),
     "points_publish_rate": (30.0, "~/surface/points rate in Hz of sim time (0: off)", True),
     "mesh_publish_rate": (1.0, "~/surface/mesh rate in Hz of sim time (0: off)", True),
     "marker_publish_rate": (10.0, "~/surface/marker rate in Hz of sim time (0: off)", True),
@@ -96,6 +134,9 @@ _RATES = ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate", "po
 _POSITIVE = ("diagnostics_rate", "max_force", "max_torque", "max_position", "max_input_age",
              "max_input_lead", "physics_dt")
 _RERUN_MODES = ("off", "file", "spawn", "serve")
+CLOCK_MODES = ("source", "follow", "lockstep")
+CLOCK_EPS_S = 1e-8          # follow: a step fits before master time T if it ends at or before T + this
+FOLLOW_LAG_WARN_S = 0.25    # follow: /diagnostics warns when the sim time lags the master by more
 _FORCE_INPUTS = ("wrench", "point_forces")
 
 
@@ -117,18 +158,9 @@ def available_scenes():
 
 
 def precompute_notice(scene):
-    """What a start costs before the node spins (the precompute cache is a later module).
-
-    Uses mdss_ros.precompute.cache_status(scene) -> {"hit": bool, "path": str,
-    "estimate_s": float or None} when that exists.
-    """
-    try:
-        from . import precompute
-    except ImportError:
-        return "no precompute cache in this version: the model is built now, at every start"
-    if not hasattr(precompute, "cache_status"):
-        return "building the model (precompute stages load from the cache when it has them)"
-    status = precompute.cache_status(scene)
+    """What a start costs before the node spins, from model_build.cache_status(scene)."""
+    from .model_build import cache_status
+    status = cache_status(scene)
     if status.get("hit"):
         return f"precompute cache hit ({status.get('path')})"
     est = status.get("estimate_s")
@@ -169,6 +201,68 @@ def parse_overrides(value):
     return out
 
 
+def steps_before(step_count, dt, t, eps=CLOCK_EPS_S):
+    """How many steps of dt, from step step_count, end at or before time t (+ eps): the
+    n >= 0 with (step_count + n) dt <= t + eps < (step_count + n + 1) dt, or 0 when the
+    sim time is already past t. Times are computed as Simulator.time is (k * dt)."""
+    limit = t + eps
+    n = math.floor(limit / dt) - step_count
+    while n > 0 and (step_count + n) * dt > limit:        # rounding of the division
+        n -= 1
+    while (step_count + n + 1) * dt <= limit:
+        n += 1
+    return max(n, 0)
+
+
+class ExternalClock:
+    """The rules of clock_mode follow and lockstep (see the module docstring), without ROS.
+
+    tick() takes one /clock message of the master and says whether it is a jump back that
+    resets the simulation; steps_due() says how many steps to take now; stepped() that
+    one was taken.
+    """
+
+    def __init__(self, mode):
+        if mode not in ("follow", "lockstep"):
+            raise ValueError(f"ExternalClock: mode must be follow or lockstep, got {mode!r}")
+        self.mode = mode
+        self.master = 0.0          # time of the last tick (s); 0 before the first
+        self.ticks = 0
+        self.jumps_back = 0
+        self.pending = 0           # lockstep: steps owed to ticks
+
+    def tick(self, t, sim_time, paused=False):
+        """A tick at master time t (s) with the simulation at sim_time; True: reset to t = 0."""
+        self.ticks += 1
+        previous, self.master = self.master, float(t)
+        if self.mode == "follow":
+            # Only a tick before the sim time needs undoing; one back but not before the
+            # sim time just holds the steps (steps_due is 0 until the master passes).
+            if t < sim_time - CLOCK_EPS_S:
+                self.jumps_back += 1
+                return True
+            return False
+        if t < previous:
+            self.jumps_back += 1
+            self.pending = 0
+            return True
+        if t > previous and not paused:
+            self.pending += 1
+        return False
+
+    def steps_due(self, step_count, dt):
+        if self.mode == "follow":
+            return steps_before(step_count, dt, self.master)
+        return self.pending
+
+    def stepped(self):
+        self.pending = max(self.pending - 1, 0)
+
+    def lag(self, sim_time):
+        """Master time minus sim time (s): how far follow mode is behind."""
+        return self.master - sim_time
+
+
 class _Input:
     __slots__ = ("due", "seq", "kind", "apply", "topic", "msg")
 
@@ -200,7 +294,7 @@ class MdssNode(Node):
         log.info(f"scene {scene.name!r} ({scene.source}): {scene['model']['kind']} model, "
                  f"dt = {scene.dt:.6g} s. {precompute_notice(scene)}")
         t0 = time.perf_counter()
-        self.sim = Simulator(scene, progress=lambda msg: log.info(f"precompute: {msg}"))
+        self.sim = build_simulator(scene, progress=lambda msg: log.info(f"precompute: {msg}"))
         st = self.sim.stats()
         self.surface_ids = np.asarray(self.sim.surface_vertex_ids())
         self.triangles = np.asarray(self.sim.surface_triangles())
@@ -221,6 +315,8 @@ class MdssNode(Node):
 
         # Bookkeeping (all touched only from callbacks of this node's executor).
         self._paused = bool(self._p("start_paused"))
+        mode = self._p("clock_mode")
+        self._clock = None if mode == "source" else ExternalClock(mode)   # None: the node is the clock
         self._queue = []
         self._seq = 0
         self._held = {}                       # handle -> sim time its wrench was last set
@@ -241,8 +337,13 @@ class MdssNode(Node):
         self._make_interfaces()
         self._publish_topology()
         self._publish_state(initial=True)
-        log.info(f"ready: {'paused' if self._paused else 'running'} at real_time_factor "
-                 f"{self._p('real_time_factor'):g}; inputs on {self.resolve_topic_name('~/wrench')}, "
+        pace = (f"at real_time_factor {self._p('real_time_factor'):g}" if self._clock is None else
+                f"in clock_mode {self._clock.mode} ("
+                + ("stepping to follow /clock" if self._clock.mode == "follow" else
+                   "one step per ~/step call or /clock tick that moves forward")
+                + "; real_time_factor ignored, no /clock published)")
+        log.info(f"ready: {'paused' if self._paused else 'running'} {pace}; "
+                 f"inputs on {self.resolve_topic_name('~/wrench')}, "
                  f"{self.resolve_topic_name('~/point_forces')}"
                  + "".join(f", {self._collider_topic(c, 'pose')}" for c in self.colliders))
 
@@ -291,6 +392,8 @@ class MdssNode(Node):
             return "world_frame must not be empty"
         if name == "rerun_mode" and value not in _RERUN_MODES:
             return f"rerun_mode must be one of {', '.join(_RERUN_MODES)}, got {value!r}"
+        if name == "clock_mode" and value not in CLOCK_MODES:
+            return f"clock_mode must be one of {', '.join(CLOCK_MODES)}, got {value!r}"
         return None
 
     def _check_startup_parameters(self):
@@ -319,7 +422,7 @@ class MdssNode(Node):
         if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
                     "max_point_forces"}:
             self._limits = self._read_limits()
-        if "real_time_factor" in names:
+        if "real_time_factor" in names and self._step_timer is not None:   # follow, lockstep: ignored
             self._step_timer.timer_period_ns = self._step_period_ns()
             if not self._paused:
                 self._step_timer.reset()
@@ -381,7 +484,9 @@ class MdssNode(Node):
         self.pub_collider_wrench = {c: self.create_publisher(WrenchStamped, f"~/colliders/{c}/wrench", _qos(10))
                                     for c in self.colliders}
         # latched: a late subscriber learns the sim time even while physics is paused
-        self.pub_clock = self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
+        # (follow, lockstep: the master owns /clock; the node only records its sim time)
+        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
+                          if self._clock is None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", _qos(10))
 
         self.create_subscription(WrenchStamped, "~/wrench", self._on_wrench, _qos(50))
@@ -402,9 +507,18 @@ class MdssNode(Node):
         # that arrived during a step are taken before the next one even when the timer is
         # always ready (a model slower than real time, or real_time_factor <= 0).
         self._step_guard = self.create_guard_condition(self._on_step_guard)
-        self._step_timer = self.create_timer(self._step_period_ns() * 1e-9, self._on_step_timer, clock=steady)
-        if self._paused:
-            self._step_timer.cancel()
+        if self._clock is None:
+            self._step_timer = self.create_timer(self._step_period_ns() * 1e-9, self._on_step_timer, clock=steady)
+            if self._paused:
+                self._step_timer.cancel()
+        else:
+            # Ticks trigger the same guard condition. BEST_EFFORT matches any master
+            # (rclcpp's ClockQoS is best effort); depth 100 queues ticks during a step.
+            self._step_timer = None
+            self.create_subscription(ClockMsg, "/clock", self._on_clock,
+                                     QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                                                reliability=ReliabilityPolicy.BEST_EFFORT,
+                                                durability=DurabilityPolicy.VOLATILE))
         self._diag_timer = self.create_timer(1.0 / self._p("diagnostics_rate"), self._on_diag_timer, clock=steady)
 
     def _step_period_ns(self):
@@ -525,8 +639,36 @@ class MdssNode(Node):
             self._step_guard.trigger()
 
     def _on_step_guard(self):
-        if not self._paused:
+        if self._paused:
+            return
+        if self._clock is None:
             self.advance()
+            return
+        # follow, lockstep: one step per callback; the guard is triggered again while more
+        # are due, so inputs (and ticks) that arrive meanwhile are taken between steps.
+        if self._clock.steps_due(self.sim.step_count, self.sim.dt) > 0:
+            self._clock.stepped()
+            self.advance()
+            self._kick_clock()
+
+    def _kick_clock(self):
+        """follow, lockstep: trigger the step guard condition while steps are due."""
+        if self._clock is not None and not self._paused and \
+                self._clock.steps_due(self.sim.step_count, self.sim.dt) > 0:
+            self._step_guard.trigger()
+
+    def _on_clock(self, msg):
+        """A tick of the external master (follow, lockstep)."""
+        t = convert.seconds(msg.clock)
+        previous, sim_time = self._clock.master, self.sim.time
+        if self._clock.tick(t, sim_time, self._paused):
+            then = "follows the master from there" if self._clock.mode == "follow" else "takes no step for it"
+            self.get_logger().warn(f"/clock jumped back from {previous:.9g} s to {t:.9g} s (sim time "
+                                   f"{sim_time:.9g} s): resetting the simulation to t = 0; the node {then} "
+                                   f"(jump back {self._clock.jumps_back})")
+            self._stability, self._last_failure = "ok", ""
+            self._reset()
+        self._kick_clock()
 
     def advance(self):
         """One physics step: due inputs, Simulator.step(), /clock and due outputs."""
@@ -571,7 +713,10 @@ class MdssNode(Node):
     def _publish_state(self, previous_step=None, initial=False):
         """/clock and every output due after the step from previous_step (None: all)."""
         t, frame, tp = self.sim.time, self._p("world_frame"), self._topics
-        self._publish(self.pub_clock, tp.clock, convert.clock(t))
+        if self.pub_clock is not None:
+            self._publish(self.pub_clock, tp.clock, convert.clock(t))
+        else:                      # follow, lockstep: recorded only (replay steps to the last one)
+            self._record(tp.clock, convert.clock(t))
         surface = [n for n in ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate")
                    if self._due(n, previous_step)]
         if surface:
@@ -680,7 +825,8 @@ class MdssNode(Node):
                             diagnostics_clock="wall time (the node's /diagnostics)",
                             wrench_timeout_s=repr(self._p("wrench_timeout_s")),
                             limits_json=json.dumps(self._limits.__dict__),
-                            real_time_factor=repr(self._p("real_time_factor")))
+                            real_time_factor=repr(self._p("real_time_factor")),
+                            clock_mode=self._p("clock_mode"))
 
     def _log_time(self):
         return int(round((self._log_offset + self.sim.time) * 1e9))
@@ -736,7 +882,8 @@ class MdssNode(Node):
     def _srv_pause(self, request, response):
         if not self._paused:
             self._paused = True
-            self._step_timer.cancel()
+            if self._step_timer is not None:
+                self._step_timer.cancel()
             self.get_logger().info(f"physics paused at t = {self.sim.time:.6g} s")
         return response
 
@@ -744,7 +891,9 @@ class MdssNode(Node):
         if self._paused:
             self._paused = False
             self._window = (time.monotonic(), self.sim.time)
-            self._step_timer.reset()
+            if self._step_timer is not None:
+                self._step_timer.reset()
+            self._kick_clock()             # follow: catch up with the master
             self.get_logger().info(f"physics running from t = {self.sim.time:.6g} s")
         return response
 
@@ -752,10 +901,15 @@ class MdssNode(Node):
         self._stability, self._last_failure = "ok", ""
         self._reset()
         self.get_logger().info("simulation reset to t = 0")
+        self._kick_clock()                 # follow: catch up from 0 with the master
         return response
 
     def _srv_step(self, request, response):
-        if not self._paused:
+        if self._clock is not None and self._clock.mode == "follow":
+            response.success = False
+            response.message = "clock_mode follow: the external /clock drives the steps"
+            return response
+        if not self._paused and self._clock is None:
             response.success = False
             response.message = "physics is running: call ~/pause_physics first"
             return response
@@ -804,6 +958,7 @@ class MdssNode(Node):
             "sim_time": self.sim.time,
             "steps": self.sim.step_count,
             "physics_dt": self.sim.dt,
+            "clock_mode": self._p("clock_mode"),
             "step_ms_median": float(np.median(steps)) if len(steps) else 0.0,
             "step_ms_max": float(steps.max()) if len(steps) else 0.0,
             "cycle_ms_median": float(np.median(cycles)) if len(cycles) else 0.0,
@@ -834,12 +989,23 @@ class MdssNode(Node):
             "rejected_total": sum(self._rejected.values()),
         }
         values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
+        clock, lag = self._clock, 0.0
+        if clock is not None:
+            values.update({"clock_master_time": clock.master, "clock_ticks": clock.ticks,
+                           "clock_jumps_back": clock.jumps_back})
+            if clock.mode == "follow":
+                lag = clock.lag(self.sim.time)
+                values["clock_lag"] = lag
+            else:
+                values["clock_steps_pending"] = clock.pending
         if stability == "failed":
             level, message = "error", f"failed: {self._last_failure}"
         elif stability == "recovered":
             level, message = "warn", f"recovered: {stats.get('guard_last_event', '')}"
-        elif not self._paused and target > 0 and len(steps) and rtf < 0.9 * target:
+        elif clock is None and not self._paused and target > 0 and len(steps) and rtf < 0.9 * target:
             level, message = "warn", f"running slower than real_time_factor {target:g}: {rtf:.3g}"
+        elif clock is not None and clock.mode == "follow" and not self._paused and lag > FOLLOW_LAG_WARN_S:
+            level, message = "warn", f"behind the master /clock by {lag:.3g} s"
         else:
             level, message = "ok", values["state"]
         return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME, f"scene:{self.sim.scene.name}",

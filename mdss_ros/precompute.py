@@ -50,7 +50,15 @@ def code_hash(stage="bases"):
         rel, _, name = item.partition("::")
         p = root / rel
         h.update(item.encode())
-        h.update(code_fingerprint(p.read_text(), name or None) if p.exists() else b"missing")
+        # A renamed file or method must not hash as "missing" and keep serving stale caches.
+        if not p.exists():
+            raise RuntimeError(f"precompute.STAGE_CODE[{stage!r}] names {rel}, which does not exist: "
+                               f"update STAGE_CODE to the module that now holds that code")
+        fingerprint = code_fingerprint(p.read_text(), name or None)
+        if fingerprint == b"missing":
+            raise RuntimeError(f"precompute.STAGE_CODE[{stage!r}] names {item}, which {rel} no longer "
+                               f"defines: update STAGE_CODE to where that code moved")
+        h.update(fingerprint)
     return h.hexdigest()[:16]
 
 
@@ -181,37 +189,3 @@ def cubature_cache_key(bases_key, cubature_cfg, dt, alpha, beta, model_cfg):
     """Key of the cubature stage: the bases key plus training/cubature settings, dt, damping, coupling."""
     return cache_key("cubature", bases_key, code_hash("cubature"), cubature_cfg, float(dt), float(alpha),
                      float(beta), model_cfg.get("coupling") or {})
-
-
-def estimate_precompute_seconds(n_tets, n_domains, modes, samples):
-    """Rough build time of a missing cache on a 2-core machine, scaled from measurements
-    of this project: bases ~1 ms per tet at 20 modes (armadillo_class: 11 domains, 301K
-    tets), training ~180 exact steps, cubature ~6 s per domain at 180 samples."""
-    bases = 1.0e-3 * n_tets * max(modes, 1) / 20.0
-    training = 180 * 0.8e-6 * n_tets if samples else 0.0
-    cubature = 6.0 * n_domains * samples / 180.0 if samples else 0.0
-    return bases + training + cubature
-
-
-def cache_status(scene, cache=None):
-    """{"hit": bool, "path": str, "estimate_s": float or None} for a scene's precompute:
-    hit when every stage the scene needs is in the cache. Builds only the mesh."""
-    from .body import build_body
-    from .scene import model_config
-    model = model_config(scene)
-    if model["kind"] != "reduced":
-        return {"hit": True, "path": "(a full-space model has no precompute)", "estimate_s": 0.0}
-    cache = cache or PrecomputeCache()
-    body = build_body(scene)
-    bkey = bases_cache_key(body, model)
-    paths = [cache.path("bases", bkey)]
-    ccfg = model.get("cubature") or {}
-    samples = int(ccfg.get("samples", 0) or 0)
-    if samples > 0:
-        damping = scene["body"]["damping"]
-        paths.append(cache.path("cubature", cubature_cache_key(bkey, ccfg, scene.dt, damping["alpha"],
-                                                               damping["beta"], model)))
-    hit = all(p.exists() for p in paths)
-    domains = (model.get("domains") or {}).get("count", 1) if isinstance(model.get("domains"), dict) else 1
-    est = None if hit else estimate_precompute_seconds(len(body.tets), domains, model["modes"], samples)
-    return {"hit": hit, "path": str(paths[-1]), "estimate_s": est}

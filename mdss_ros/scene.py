@@ -176,6 +176,35 @@ def _validate(section, schema, where, source):
     return out
 
 
+# model.budget (probed by mdss_ros/budget.py): its keys and the default ladder of modes
+BUDGET_DEFAULT_MODES = (4, 6, 8, 12, 16, 24, 32)
+BUDGET_KEYS = {"ms_per_step", "max_error", "horizon", "modes"}
+
+
+def check_budget(budget, source="<scene>"):
+    """Validate a model.budget mapping ({} = off); SceneError names what is wrong."""
+    if budget in (None, {}):
+        return {}
+    where = f"{source}: model.budget"
+    if not isinstance(budget, dict):
+        raise SceneError(f"{where}: expected a mapping like {{ms_per_step: 5}} or {{max_error: 0.02}}, got {budget!r}")
+    unknown = sorted(set(budget) - BUDGET_KEYS)
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(BUDGET_KEYS))})")
+    goals = [k for k in ("ms_per_step", "max_error") if k in budget]
+    if len(goals) != 1:
+        raise SceneError(f"{where}: give exactly one of ms_per_step or max_error, got {budget!r}")
+    for k in ("ms_per_step", "max_error", "horizon"):
+        v = budget.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0):
+            raise SceneError(f"{where}.{k}: expected a positive number, got {v!r}")
+    modes = budget.get("modes", BUDGET_DEFAULT_MODES)
+    if (not isinstance(modes, (list, tuple)) or not modes
+            or not all(isinstance(m, int) and not isinstance(m, bool) and m >= 1 for m in modes)):
+        raise SceneError(f"{where}.modes: expected a list of integers >= 1, got {modes!r}")
+    return dict(budget, modes=sorted(set(modes)))
+
+
 def apply_overrides(raw, overrides):
     """Set dotted keys ("model.modes": 10) in a raw scene dict, creating sections as needed."""
     raw = copy.deepcopy(raw)
@@ -264,7 +293,6 @@ def load_scene(path_or_dict, overrides=None):
 def _check_sections(data, source):
     """Checks needing more than one key; returns warnings (list of str)."""
     warnings = []
-    from .budget import check_budget
     data["model"]["budget"] = check_budget(data["model"]["budget"], source)
     for i, pin in enumerate(data["pins"]):
         if not isinstance(pin, dict):

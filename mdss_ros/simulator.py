@@ -12,25 +12,9 @@ from .body import build_body
 from .errors import SceneError
 from .guard import GuardSettings, StabilityGuard
 from .loads import VertexLoads, closest_surface_point, wrench_to_vertex_forces
+from .model_build import build_model
 from .scene import Scene, load_scene
 from .threads import BlasThreads
-
-
-def build_model(scene, body, progress=None, cache=None):
-    """The dynamics model of a scene (`model.kind`); progress(msg) hears long build steps."""
-    from .scene import model_config
-    model = model_config(scene)
-    kind = model["kind"]
-    if kind == "full":
-        from .fem.full_model import FullSpaceModel
-        return FullSpaceModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
-                              mass=scene["body"]["mass"], solver=model["solver"])
-    if kind == "reduced":
-        from .reduced.reduced_model import ReducedModel
-        return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
-                            progress=progress, cache=cache)
-    raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
-                     f"(available: full, reduced)")
 
 
 class Simulator:
@@ -39,14 +23,21 @@ class Simulator:
     scene: a Scene, a path or scene name, or a dict (validated by load_scene).
     progress: callable(str) that hears long build steps; cache: a PrecomputeCache
     (default: $MDSS_CACHE_DIR or ~/.cache/mdss_ros; PrecomputeCache(enabled=False) turns it off).
+    budget: the report of mdss_ros.budget.resolve_budget for a scene whose model.budget was
+    resolved (stats() and explain() show it). A scene with an unresolved model.budget is
+    refused: the probe runs Simulators itself, so it is done before, by
+    mdss_ros.budget.build_simulator (mdss run, the node and replay use it).
     """
 
-    def __init__(self, scene, overrides=None, progress=None, cache=None):
+    def __init__(self, scene, overrides=None, progress=None, cache=None, budget=None):
         if not isinstance(scene, Scene) or overrides:
             scene = load_scene(scene, overrides)
+        if scene["model"].get("budget"):
+            raise SceneError(f"{scene.source}: model.budget {scene['model']['budget']} must be resolved before "
+                             f"a Simulator is built: use mdss_ros.budget.build_simulator(scene, ...) "
+                             f"(or resolve_budget(scene), then Simulator(scene, budget=report))")
         t0 = time.perf_counter()
-        from .budget import resolve_budget
-        scene, self.budget = resolve_budget(scene, progress, cache)    # model.budget: probe once, cached
+        self.budget = budget
         self.scene = scene
         self.body = build_body(scene, cache)
         self.model = build_model(scene, self.body, progress, cache)

@@ -2,7 +2,7 @@
 import pytest
 
 from mdss_ros import Simulator, load_scene
-from mdss_ros.budget import candidate_overrides, check_budget
+from mdss_ros.budget import build_simulator, candidate_overrides, check_budget
 from mdss_ros.errors import SceneError
 from mdss_ros.precompute import PrecomputeCache
 from mdss_ros.verify.reduced_reports import beam_scene
@@ -41,20 +41,20 @@ def test_candidates_scale_cubature_samples_with_modes():
 def test_error_budget_takes_the_cheapest_candidate_within_it_and_caches_the_choice(tmp_path):
     cache = PrecomputeCache(tmp_path)
     budget = {"max_error": 0.02, "modes": [2, 4, 8, 16], "horizon": 0.2}
-    sim = Simulator(_scene(budget), cache=cache)
+    sim = build_simulator(_scene(budget), cache=cache)
     rep = sim.budget
     errors = {c["modes"]: c["rms_rel"] for c in rep["candidates"]}
     chosen = rep["chosen"]["modes"]
     assert rep["met"] and errors[chosen] <= 0.02
     assert all(e > 0.02 for m, e in errors.items() if m < chosen)          # nothing cheaper was within it
     assert sim.scene["model"]["modes"] == chosen and sim.stats()["budget"]["modes"] == chosen
-    again = Simulator(_scene(budget), cache=PrecomputeCache(tmp_path))
+    again = build_simulator(_scene(budget), cache=PrecomputeCache(tmp_path))
     assert again.budget["cached"] and again.scene["model"]["modes"] == chosen
 
 
 @pytest.mark.parametrize("ms, expect", [(1e6, "largest"), (1e-6, "smallest")])
 def test_time_budget_extremes(tmp_path, ms, expect):
-    sim = Simulator(_scene({"ms_per_step": ms, "modes": [2, 4], "horizon": 0.1}), cache=PrecomputeCache(tmp_path))
+    sim = build_simulator(_scene({"ms_per_step": ms, "modes": [2, 4], "horizon": 0.1}), cache=PrecomputeCache(tmp_path))
     assert sim.scene["model"]["modes"] == (4 if expect == "largest" else 2)
     assert sim.budget["met"] == (expect == "largest")
 
@@ -63,4 +63,10 @@ def test_budget_needs_a_reduced_model():
     s = _scene({"ms_per_step": 5})
     s["model"]["kind"] = "full"
     with pytest.raises(SceneError, match="reduced model"):
-        Simulator(s)
+        build_simulator(s)
+
+
+def test_a_simulator_refuses_an_unresolved_budget_and_names_the_way():
+    """The probe builds Simulators itself, so budgets are resolved before one is built."""
+    with pytest.raises(SceneError, match="build_simulator"):
+        Simulator(_scene({"ms_per_step": 5}))

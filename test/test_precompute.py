@@ -64,7 +64,7 @@ def test_corrupt_and_foreign_files_are_reported_and_rebuilt(tmp_path):
 
 
 def test_cache_status_reports_missing_then_hit(tmp_path):
-    from mdss_ros.precompute import cache_status
+    from mdss_ros.model_build import cache_status
     scene = load_scene("cantilever", overrides=OV)
     cache = PrecomputeCache(tmp_path)
     before = cache_status(scene, cache)

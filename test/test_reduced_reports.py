@@ -121,7 +121,7 @@ def test_modes_quick_reduced_frequencies_approach_full_fem(tmp_path):
 
 
 def test_unavailable_reports_exit_nonzero(tmp_path):
-    from mdss_ros.verify.reduced_reports import BUILT, NOT_BUILT
+    from mdss_ros.verify.reports import BUILT, NOT_BUILT
     # Every planned report is built, so there is no "not built yet" case left to test; a
     # report added to NOT_BUILT needs its own check of that message here.
     assert NOT_BUILT == ()

@@ -34,6 +34,10 @@ class TetGeometry:
     volume: np.ndarray
     grads: np.ndarray
 
+    def subset(self, ids):
+        """The geometry of elements ids (k,) only, in that order."""
+        return TetGeometry(volume=self.volume[ids], grads=np.ascontiguousarray(self.grads[ids]))
+
 
 def tet_geometry(X, tets):
     """Rest volumes and shape-function gradients.

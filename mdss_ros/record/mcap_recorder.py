@@ -258,7 +258,7 @@ class McapRecorder:
         except OSError as err:
             raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}") from err
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
-        from .. import __version__
+        from ..version import __version__
         import mcap
         lib = library or f"mdss_ros {__version__} (mcap-python {getattr(mcap, '__version__', '?')})"
         try:

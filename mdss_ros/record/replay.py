@@ -74,13 +74,13 @@ class Input:
 
 def build_simulator(scene, overrides=None, base_dir=None):
     """(Simulator, cache events) of a scene (name, path, dict or Scene)."""
+    from ..budget import build_simulator as build
     from ..precompute import PrecomputeCache
     from ..scene import Scene, load_scene
-    from ..simulator import Simulator
     if isinstance(scene, dict) and base_dir is not None:
         scene = load_scene(Scene(data=scene, source="<recording>", base_dir=Path(base_dir)))
     cache = PrecomputeCache()
-    sim = Simulator(scene, overrides=overrides or None, cache=cache)
+    sim = build(scene, overrides=overrides or None, cache=cache)
     return sim, [list(e) for e in cache.events]
 
 
@@ -88,7 +88,7 @@ def run_metadata(sim, namespace, world_frame, rates, cache_events=(), **extra):
     """The `mdss_run` metadata of a recording (`mdss run --mcap` and the node): everything
     replay needs to rebuild the run. rates: dict of OutputRates fields; extra: recorder-
     specific string entries (the node's recorder, wrench timeout, limits)."""
-    from .. import __version__
+    from ..version import __version__
     scene = sim.scene
     meta = {
         "format": "mdss_run/1",

@@ -187,8 +187,7 @@ def interface_features(model, elements, pair, training, poses):
     i, j = pair
     tets = model.body.tets[elements]
     geom = model.geom
-    from .reduced_model import _subset_geometry
-    sub = _subset_geometry(geom, elements)
+    sub = geom.subset(elements)
     doms = (model.subspace[i], model.subspace[j])
     slot_dom = model.vertex_domain[tets]                              # (n_g, 4) global domain ids
     out = {g: [] for g in INTERFACE_GROUPS}

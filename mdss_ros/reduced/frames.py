@@ -95,10 +95,10 @@ class FrameState:
         self.w = np.where(movable[:, None], w_new, 0.0)
         self.c = self.c + dt * self.v
         for i in np.flatnonzero(movable):          # loop over domains (d ~ 10), not vertices
-            self.R[i] = _orthonormalise(exp_so3(dt * self.w[i]) @ self.R[i])
+            self.R[i] = orthonormalise(exp_so3(dt * self.w[i]) @ self.R[i])
 
 
-def _orthonormalise(R):
+def orthonormalise(R):
     U, _, Vt = np.linalg.svd(R)
     return U @ Vt
 

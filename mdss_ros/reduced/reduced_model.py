@@ -27,7 +27,7 @@ import scipy.sparse.linalg as spla
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
-from ..fem.elements import TetGeometry, element_forces, tet_geometry
+from ..fem.elements import element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..loads import sparse_loads
@@ -37,7 +37,7 @@ from .block_cholesky import BlockCholesky
 from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
-from .frames import FrameState, _orthonormalise, fictitious_forces
+from .frames import FrameState, orthonormalise, fictitious_forces
 
 
 def _jsonable(x):
@@ -49,10 +49,6 @@ def _jsonable(x):
     if isinstance(x, (np.floating, np.integer, np.bool_)):
         return x.item()
     return x
-
-
-def _subset_geometry(geom, ids):
-    return TetGeometry(volume=geom.volume[ids], grads=np.ascontiguousarray(geom.grads[ids]))
 
 
 def _det_identity_plus(H):
@@ -179,7 +175,7 @@ class ReducedModel:
             # Mass and axis of each free full-space DOF: gravity on them without an (n, 3) pass.
             free_dofs = np.flatnonzero(self.ff_pattern.free_dof >= 0)
             self._ff_mass, self._ff_axis = self.vertex_mass[free_dofs // 3], free_dofs % 3
-            self.ff_geom = _subset_geometry(self.geom, self.ff_elements)
+            self.ff_geom = self.geom.subset(self.ff_elements)
             self.n_full_elems = len(full_elems)
         else:
             self.F = 0
@@ -336,7 +332,7 @@ class ReducedModel:
         if self.coupling_kind == "element":
             self.c_tets = np.asarray(tet_ids, dtype=np.int64)
             self.c_verts = self.body.tets[self.c_tets]
-            self.c_geom = _subset_geometry(self.geom, self.c_tets)
+            self.c_geom = self.geom.subset(self.c_tets)
         iface, inv = np.unique(self.c_verts, return_inverse=True)
         # Ordered by domain (full-space vertices last), so that a domain's interface rows
         # are one slice: J, its basis rows and the coupling GEMMs then work on views.
@@ -487,7 +483,7 @@ class ReducedModel:
             frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
             frames.w[mv] = W + w[mv] @ Rg.T
             for k in np.flatnonzero(mv):        # loop over domains, not vertices
-                frames.R[k] = _orthonormalise(Rg @ exp_so3(dt * w[k]) @ frames0.R[k])
+                frames.R[k] = orthonormalise(Rg @ exp_so3(dt * w[k]) @ frames0.R[k])
             if self.F:
                 rho_f = (x0 - C + dt * v_full) @ Rg.T
                 x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
@@ -1300,7 +1296,7 @@ class ReducedModel:
         |v| + |w| (rho + sigma |q|) + sigma |qd| (rho the largest rest radius, sigma the
         largest per-vertex basis norm); inverted elements among those the forces sample
         (cubature samples, coupling and full-space elements)."""
-        from ..guard import Measure, inverted_tets
+        from ..state_measure import Measure
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
         with np.errstate(all="ignore"):
@@ -1378,7 +1374,7 @@ class ReducedModel:
         gravity potential and (frame velocities kept, modes carry none) the linear
         momentum do not change.
         Returns s (1.0: nothing inverted), or None if even s = 0 leaves an inverted element."""
-        from ..guard import inverted_tets
+        from ..state_measure import inverted_tets
         from ..rotations import exp_so3, quat_from_matrix
         q0, qd0, fr0, xf0 = self.q, self.qd, self.frames, self.x_full
         m = np.array([dom.total_mass for dom in self.subspace])
@@ -1437,7 +1433,7 @@ class ReducedModel:
         where it can: a cubature sample's F = I + unvec(G_s q) is at hand in reduced
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
-        from ..guard import inverted_tets
+        from ..state_measure import inverted_tets
         n = 0
         for k, dom in enumerate(self.subspace):
             if getattr(dom, "sampled", None) is not None and len(dom.sampled.elements):

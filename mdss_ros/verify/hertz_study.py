@@ -320,8 +320,8 @@ def _by_kind(rows):
 
 def fd_curves(rows, radius, e_star, path):
     """Force against indentation: Hertz's curve and every model's (F, d) pairs."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     d_max = max(p["depth"] for r in rows for p in r["points"]) * 1.1
     d = np.linspace(0.0, d_max, 200)
@@ -336,13 +336,13 @@ def fd_curves(rows, radius, e_star, path):
     ax.set_title("Sphere on a 2 m block: force vs indentation")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def l2_vs_dofs(rows, path):
     """The paper's Fig. 3: L2 error of the (F, d) pairs against DOFs, per model kind."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for kind, group in _by_kind(rows).items():
         if group:
@@ -363,13 +363,13 @@ def l2_vs_dofs(rows, path):
     ax.set_title("L2 error of the (F, d) pairs vs DOFs")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def fixed_force_convergence(rows, path):
     """The paper's Fig. 5: indentation at the fixed force against DOFs, with Hertz's value."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     ref = None
     for kind, group in _by_kind(rows).items():
@@ -383,13 +383,13 @@ def fixed_force_convergence(rows, path):
     ax.set_title(f"Indentation at F = {ref['target']:.3g} N vs refinement")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def timing_vs_dofs(rows, path):
     """ms per interactive step (dt 1/90 s, one Newton iteration, in contact) against DOFs."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for kind, group in _by_kind(rows).items():
         if group:
@@ -400,4 +400,4 @@ def timing_vs_dofs(rows, path):
     ax.set_title("Step cost with the sphere in contact")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)

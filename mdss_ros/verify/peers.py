@@ -462,8 +462,8 @@ def peer_table(rows, ref):
 def peer_plot(rows, ref, path):
     """Two log-log panels, ms/step vs error: |sag error| vs the closed form, and RMS
     surface error vs our FEM statics on the same grid (rows on that grid only)."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(14, 5.8))
     panels = [("err_closed_form", f"|static sag error| vs Euler-Bernoulli + shear ({ref:.4f} m), %"),
               ("rms_rel_vs_fem", "RMS surface error vs our full-space FEM statics, same grid, %")]
@@ -488,4 +488,4 @@ def peer_plot(rows, ref, path):
     axes[0].scatter([], [], marker="o", color="k", label="mdss full-space FEM")
     axes[0].legend(fontsize=8)
     fig.suptitle("Clamped beam under gravity: static sag, MuJoCo flex vs mdss", fontsize=11)
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -649,8 +649,8 @@ def limbed_table(rows, loaded):
 def limbed_plot(rows, path, name, load="one arm's tip force"):
     """Two log-log panels, ms/step vs RMS displacement error against our full FEM and
     against MuJoCo's full flex; MuJoCo squares, ours circles, every point labelled."""
-    from .plotting import _plt, _save
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
     for ax, key in zip(axes, ("rms_vs_fem", "rms_vs_mjfull")):
         for r in rows:
@@ -674,4 +674,4 @@ def limbed_plot(rows, path, name, load="one arm's tip force"):
     axes[0].scatter([], [], marker="o", color="k", label="mdss full-space FEM")
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{name}: static equilibrium under gravity + {load}, MuJoCo flex vs mdss", fontsize=11)
-    return _save(fig, path)
+    return save_figure(fig, path)

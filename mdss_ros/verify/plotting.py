@@ -6,17 +6,17 @@ path as a string.
 import numpy as np
 
 
-def _plt():
+def pyplot():
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
 
 
-def _save(fig, path):
+def save_figure(fig, path):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    pyplot().close(fig)
     return str(path)
 
 
@@ -26,7 +26,7 @@ SCHEME_STYLE = {"one_step": dict(color="tab:blue", label="one-step (unified)"),
 
 def energy_curves(runs, path, title=""):
     """E(t) / E0, one panel per dt, one line per scheme."""
-    plt = _plt()
+    plt = pyplot()
     labels = list(dict.fromkeys(r["dt_label"] for r in runs))
     n = len(labels)
     cols = 2 if n > 1 else 1
@@ -47,13 +47,13 @@ def energy_curves(runs, path, title=""):
         ax.axis("off")
     if title:
         fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def cantilever_errors(rows, path):
     """|relative error| vs closed forms of tip deflection, gravity sag and first frequency
     against DOFs (log-log): full-space lines over resolutions, reduced models as markers."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     full = [r for r in rows if r.get("kind", "full") == "full"]
     red = [r for r in rows if r.get("kind") == "reduced"]
@@ -78,13 +78,13 @@ def cantilever_errors(rows, path):
     ax.set_title("Cantilever vs Euler-Bernoulli + shear (reduced: on the cell 0.025 mesh)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def coupling_bars(variants, path):
     """Bars (log scale, values on top): RMS surface error, and mean / max |interface edge
     stretch| per variant."""
-    plt = _plt()
+    plt = pyplot()
     names = [v["label"] for v in variants]
     x = np.arange(len(names))
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
@@ -104,14 +104,14 @@ def coupling_bars(variants, path):
         ax.set_xticks(x)
         ax.set_xticklabels(names, rotation=25, ha="right", fontsize=8)
         ax.grid(alpha=0.3, axis="y", which="both")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def coupling_side_views(truth_xz, variants, interface_xz, path, window=0.06):
     """x-z scatter of surface vertices per variant (one row each) over the ground truth
     (grey): the whole beam (left) and a window of half-width `window` m around the
     interface (right), equal axes."""
-    plt = _plt()
+    plt = pyplot()
     n = len(variants)
     fig, axes = plt.subplots(n, 2, figsize=(13, 2.9 * n), squeeze=False,
                              gridspec_kw={"width_ratios": [3.2, 1]})
@@ -136,7 +136,7 @@ def coupling_side_views(truth_xz, variants, interface_xz, path, window=0.06):
             else:
                 ax.set_title(f"{v['label']}: RMS error {100 * v['rms_rel']:.2f} % of peak", fontsize=9)
                 ax.legend(fontsize=7, loc="lower left", markerscale=3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 DOMAIN_COLORS = {1: "tab:blue", 2: "tab:orange", 4: "tab:green", 8: "tab:red"}
@@ -144,7 +144,7 @@ DOMAIN_COLORS = {1: "tab:blue", 2: "tab:orange", 4: "tab:green", 8: "tab:red"}
 
 def accuracy_error_vs_dofs(rows, path):
     """RMS surface error vs DOFs, one line per domain count (points labelled with r)."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for d in sorted({r["domains"] for r in rows}):
         rr = sorted((r for r in rows if r["domains"] == d), key=lambda r: r["dofs"])
@@ -158,12 +158,12 @@ def accuracy_error_vs_dofs(rows, path):
     ax.set_title("Reduced vs full-space FEM, static large deflection")
     ax.grid(alpha=0.3, which="both")
     ax.legend()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def accuracy_cost_vs_error(rows, full_ms, path):
     """Median ms per step vs RMS error, marker colour by domain count; full-space line."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for d in sorted({r["domains"] for r in rows}):
         rr = [r for r in rows if r["domains"] == d]
@@ -181,14 +181,14 @@ def accuracy_cost_vs_error(rows, full_ms, path):
     ax.set_title("Cost vs accuracy")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def modes_errors(rows, mode_labels, path):
     """Left: |error| of each natural frequency vs the closed form against DOFs (full
     models, one line per mode). Right: reduced models' frequency error vs full FEM on
     the same mesh, one group of bars per configuration (log scale)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.6))
     full = [r for r in rows if r["kind"] == "full"]
     red = [r for r in rows if r["kind"] == "reduced"]
@@ -217,4 +217,4 @@ def modes_errors(rows, mode_labels, path):
         axes[1].legend(fontsize=7, ncol=2)
     else:
         axes[1].axis("off")
-    return _save(fig, path)
+    return save_figure(fig, path)
