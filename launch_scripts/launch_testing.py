@@ -21,8 +21,9 @@ file (so concurrent test runs on one machine never meet), ROS_AUTOMATIC_DISCOVER
 The probe (`python launch_testing.py probe`) is a small rclpy process that reads one
 JSON command a line on stdin and answers one JSON line on stdout: subscribe and keep
 what arrives (with receipt wall time), publish a message given as a dict, call a
-service, set parameters, wait for a topic or for a number of messages. Point clouds
-come back decoded into columns.
+service, set parameters, wait for a topic or for a number of messages, play a clock
+master (/clock ticks on a wall-time schedule, `Probe.play_clock`). Point clouds come back
+decoded into columns.
 """
 import base64
 import errno
@@ -247,6 +248,18 @@ class Probe(Process):
 
     def wait_topic(self, topic, timeout=60.0, publishers=1):
         return self.request("wait_topic", topic=topic, publishers=publishers, timeout=timeout)
+
+    def graph(self, topic):
+        """{"publishers": n, "subscribers": m} the probe sees on topic now."""
+        return self.request("graph", topic=topic)
+
+    def play_clock(self, times, period, topic="/clock", qos="reliable", wait_subscribers=30.0):
+        """Be a clock master: publish rosgraph_msgs/Clock at each of times (s, in order) every
+        `period` s of wall time, from a thread; returns once a subscriber matched. Each tick
+        is kept under "@sent" + topic (get / wait read it) with, as _recv, the wall time
+        taken just before it was published."""
+        return self.request("play_clock", topic=topic, times=[float(t) for t in times], period=period,
+                            qos=qos, wait_subscribers=wait_subscribers, timeout=wait_subscribers + 10)
 
     def diagnostics(self, where=None, timeout=30.0, name="mdss: simulation"):
         """Values (a dict of str) of the first /diagnostics status `name` matching where that
@@ -595,6 +608,39 @@ def probe_main():
                 n = len(store.get(cmd["topic"], []))
                 store[cmd["topic"]] = []
             return n
+        if op == "graph":
+            return {"publishers": node.count_publishers(cmd["topic"]),
+                    "subscribers": node.count_subscribers(cmd["topic"])}
+        if op == "play_clock":
+            from rosgraph_msgs.msg import Clock
+            topic, key = cmd["topic"], "@sent" + cmd["topic"]
+            if topic not in pubs:
+                pubs[topic] = node.create_publisher(Clock, topic, qos(cmd.get("qos", "reliable"), 100))
+            pub = pubs[topic]
+            deadline = time.monotonic() + cmd.get("wait_subscribers", 30.0)
+            while pub.get_subscription_count() == 0:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"no subscriber on {topic}")
+                time.sleep(0.02)
+            with lock:
+                store[key] = []
+
+            def play(times=cmd["times"], period=cmd["period"]):
+                due = time.monotonic()
+                for t in times:
+                    ns = int(round(t * 1e9))
+                    msg = Clock()
+                    msg.clock.sec, msg.clock.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+                    sent = time.time()
+                    pub.publish(msg)
+                    with lock:
+                        store[key].append((sent, msg))
+                        lock.notify_all()
+                    due += period
+                    time.sleep(max(0.0, due - time.monotonic()))
+
+            threading.Thread(target=play, name="clock-master", daemon=True).start()
+            return len(cmd["times"])
         if op == "wait_topic":
             deadline = time.monotonic() + cmd.get("timeout", 60.0)
             while node.count_publishers(cmd["topic"]) < cmd.get("publishers", 1):

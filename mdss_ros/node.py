@@ -316,7 +316,7 @@ class MdssNode(Node):
         # Bookkeeping (all touched only from callbacks of this node's executor).
         self._paused = bool(self._p("start_paused"))
         mode = self._p("clock_mode")
-        self._clock = None if mode == "source" else ExternalClock(mode)   # None: the node is the clock
+        self._master = None if mode == "source" else ExternalClock(mode)   # None: the node is the clock
         self._queue = []
         self._seq = 0
         self._held = {}                       # handle -> sim time its wrench was last set
@@ -337,9 +337,9 @@ class MdssNode(Node):
         self._make_interfaces()
         self._publish_topology()
         self._publish_state(initial=True)
-        pace = (f"at real_time_factor {self._p('real_time_factor'):g}" if self._clock is None else
-                f"in clock_mode {self._clock.mode} ("
-                + ("stepping to follow /clock" if self._clock.mode == "follow" else
+        pace = (f"at real_time_factor {self._p('real_time_factor'):g}" if self._master is None else
+                f"in clock_mode {self._master.mode} ("
+                + ("stepping to follow /clock" if self._master.mode == "follow" else
                    "one step per ~/step call or /clock tick that moves forward")
                 + "; real_time_factor ignored, no /clock published)")
         log.info(f"ready: {'paused' if self._paused else 'running'} {pace}; "
@@ -486,7 +486,7 @@ class MdssNode(Node):
         # latched: a late subscriber learns the sim time even while physics is paused
         # (follow, lockstep: the master owns /clock; the node only records its sim time)
         self.pub_clock = (self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
-                          if self._clock is None else None)
+                          if self._master is None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", _qos(10))
 
         self.create_subscription(WrenchStamped, "~/wrench", self._on_wrench, _qos(50))
@@ -507,7 +507,7 @@ class MdssNode(Node):
         # that arrived during a step are taken before the next one even when the timer is
         # always ready (a model slower than real time, or real_time_factor <= 0).
         self._step_guard = self.create_guard_condition(self._on_step_guard)
-        if self._clock is None:
+        if self._master is None:
             self._step_timer = self.create_timer(self._step_period_ns() * 1e-9, self._on_step_timer, clock=steady)
             if self._paused:
                 self._step_timer.cancel()
@@ -641,31 +641,31 @@ class MdssNode(Node):
     def _on_step_guard(self):
         if self._paused:
             return
-        if self._clock is None:
+        if self._master is None:
             self.advance()
             return
         # follow, lockstep: one step per callback; the guard is triggered again while more
         # are due, so inputs (and ticks) that arrive meanwhile are taken between steps.
-        if self._clock.steps_due(self.sim.step_count, self.sim.dt) > 0:
-            self._clock.stepped()
+        if self._master.steps_due(self.sim.step_count, self.sim.dt) > 0:
+            self._master.stepped()
             self.advance()
             self._kick_clock()
 
     def _kick_clock(self):
         """follow, lockstep: trigger the step guard condition while steps are due."""
-        if self._clock is not None and not self._paused and \
-                self._clock.steps_due(self.sim.step_count, self.sim.dt) > 0:
+        if self._master is not None and not self._paused and \
+                self._master.steps_due(self.sim.step_count, self.sim.dt) > 0:
             self._step_guard.trigger()
 
     def _on_clock(self, msg):
         """A tick of the external master (follow, lockstep)."""
         t = convert.seconds(msg.clock)
-        previous, sim_time = self._clock.master, self.sim.time
-        if self._clock.tick(t, sim_time, self._paused):
-            then = "follows the master from there" if self._clock.mode == "follow" else "takes no step for it"
+        previous, sim_time = self._master.master, self.sim.time
+        if self._master.tick(t, sim_time, self._paused):
+            then = "follows the master from there" if self._master.mode == "follow" else "takes no step for it"
             self.get_logger().warn(f"/clock jumped back from {previous:.9g} s to {t:.9g} s (sim time "
                                    f"{sim_time:.9g} s): resetting the simulation to t = 0; the node {then} "
-                                   f"(jump back {self._clock.jumps_back})")
+                                   f"(jump back {self._master.jumps_back})")
             self._stability, self._last_failure = "ok", ""
             self._reset()
         self._kick_clock()
@@ -905,11 +905,11 @@ class MdssNode(Node):
         return response
 
     def _srv_step(self, request, response):
-        if self._clock is not None and self._clock.mode == "follow":
+        if self._master is not None and self._master.mode == "follow":
             response.success = False
             response.message = "clock_mode follow: the external /clock drives the steps"
             return response
-        if not self._paused and self._clock is None:
+        if not self._paused and self._master is None:
             response.success = False
             response.message = "physics is running: call ~/pause_physics first"
             return response
@@ -989,7 +989,7 @@ class MdssNode(Node):
             "rejected_total": sum(self._rejected.values()),
         }
         values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
-        clock, lag = self._clock, 0.0
+        clock, lag = self._master, 0.0
         if clock is not None:
             values.update({"clock_master_time": clock.master, "clock_ticks": clock.ticks,
                            "clock_jumps_back": clock.jumps_back})
