@@ -223,10 +223,14 @@ def apply_overrides(raw, overrides):
 
 
 def scene_search_path():
-    """Folders searched for a scene given by name: cwd, the repo's msg_scenes, the installed share."""
+    """Folders searched for a scene given by name: cwd, the repo's msg_scenes, the share
+    folder of every prefix on AMENT_PREFIX_PATH (a colcon workspace installs the scenes
+    there, and `source install/setup.bash` puts it on that path), the venv's share."""
     here = Path(__file__).resolve().parent
-    return [Path.cwd(), Path.cwd() / "msg_scenes", here.parent / "msg_scenes",
-            Path(sys.prefix) / "share" / "mdss_ros" / "msg_scenes"]
+    ament = [Path(p) / "share" / "mdss_ros" / "msg_scenes"
+             for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    return ([Path.cwd(), Path.cwd() / "msg_scenes", here.parent / "msg_scenes"] + ament
+            + [Path(sys.prefix) / "share" / "mdss_ros" / "msg_scenes"])
 
 
 def resolve_scene_path(name_or_path):
