@@ -269,10 +269,55 @@ def cmd_bench(args):
         print(f"  {k[:-3]:>16s}: {med[k]:9.3f} ms median")
     print(f"  step + surface: p90 {result['p90_step_and_surface_ms']:.3f} ms, max "
           f"{result['max_step_and_surface_ms']:.3f} ms; steps where the guard acted: {result['guard_actions']}")
+    if args.profile:
+        result["profile"] = profile_steps(sim, player, args.profile)
+        p = result["profile"]
+        print(f"  profile over {p['steps']} more steps (step + surface): {p['python_calls_per_step']:.0f} Python "
+              f"function calls and {p['c_calls_per_step']:.0f} calls into C (numpy, numba, builtins) per step; "
+              f"by own time:")
+        for f in p["top"]:
+            print(f"    {f['own_ms_per_step']:8.3f} ms {f['calls_per_step']:8.1f} calls  {f['function']}")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
         print(f"mdss bench: written {args.json}")
     return 0
+
+
+def profile_steps(sim, player, steps, top=15):
+    """Where a step's Python time goes: the Python function calls and the calls into C
+    (numpy, numba kernels, builtins) per step + surface, counted exactly by a profile hook
+    over `steps` steps, then the functions with the most own time from cProfile over as
+    many more (its overhead inflates the times; the ranking and the call counts are what
+    to read). The compiled-step work aims at few calls per step, independent of domains."""
+    import cProfile
+    import pstats
+    counts = {"call": 0, "c_call": 0}
+
+    def hook(frame, event, arg):
+        if event in counts:
+            counts[event] += 1
+
+    def run():
+        for _ in range(steps):
+            player.apply_due(sim)
+            sim.step()
+            sim.surface_positions()
+
+    sys.setprofile(hook)
+    try:
+        run()
+    finally:
+        sys.setprofile(None)
+    prof = cProfile.Profile()
+    prof.runcall(run)
+    stats = pstats.Stats(prof).stats             # {(file, line, name): (cc, nc, tt, ct, callers)}
+    rows = sorted(stats.items(), key=lambda kv: -kv[1][2])[:top]
+    root = str(Path(__file__).resolve().parent.parent)
+    return {"steps": steps, "python_calls_per_step": counts["call"] / steps,
+            "c_calls_per_step": counts["c_call"] / steps,
+            "top": [{"function": f"{fn.replace(root + '/', '')}:{line}({name})",
+                     "own_ms_per_step": 1e3 * tt / steps, "calls_per_step": nc / steps}
+                    for (fn, line, name), (cc, nc, tt, ct, _) in rows]}
 
 
 def bench_fem_one(n_tets_target, iterations=5):
@@ -450,6 +495,8 @@ def main(argv=None):
     p.add_argument("--compare", action="store_true",
                    help="Tables 3/4: single domain, no interface cubature, full cubature, full space")
     p.add_argument("--fem-sizes", default="10000,50000,240000", help="tet counts for --fem-scaling")
+    p.add_argument("--profile", type=int, default=0, metavar="N",
+                   help="also count Python calls per step over N more steps and list where the time goes")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("verify", help="verification reports (JSON + PNG plots into --out)")
