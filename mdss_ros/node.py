@@ -94,7 +94,9 @@ from .scene import load_scene, read_yaml, resolve_scene_path, scene_search_path
 from .budget import build_simulator
 
 NODE_NAME = "mdss"
-DIAGNOSTIC_NAME = "mdss: simulation"
+# The /diagnostics status is "<node name>: simulation" ("mdss: simulation" by default), so
+# several bodies, one node each (-r __node:=body_a), are told apart on the shared topic.
+DIAGNOSTIC_NAME = "{node}: simulation"
 WARN_PERIOD_S = 2.0   # one warning per rejection kind per this many seconds
 
 # name: (default, description, changeable at runtime). physics_dt's default is the scene's.
@@ -1008,7 +1010,8 @@ class MdssNode(Node):
             level, message = "warn", f"behind the master /clock by {lag:.3g} s"
         else:
             level, message = "ok", values["state"]
-        return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME, f"scene:{self.sim.scene.name}",
+        return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME.format(node=self.get_name()),
+                                   f"scene:{self.sim.scene.name}",
                                    level, message, values)
 
     def close(self):

@@ -410,7 +410,8 @@ class SimOutputs:
             "inputs_applied": inputs_applied,
             "rejected_total": inputs_rejected,
         }
-        msg = convert.diagnostics(sim.time, "mdss: simulation", f"scene:{sim.scene.name}", "ok", "running", values)
+        name = self.topics.namespace.rstrip("/").rsplit("/", 1)[-1] or "mdss"     # as the node names it
+        msg = convert.diagnostics(sim.time, f"{name}: simulation", f"scene:{sim.scene.name}", "ok", "running", values)
         return self._out(self.topics.diagnostics, msg, sim.time)
 
 
