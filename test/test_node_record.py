@@ -128,6 +128,7 @@ def test_unwritable_mcap_path_is_reported_and_the_node_keeps_stepping(tmp_path):
         assert node.stop() == 0, node.text
 
 
+@pytest.mark.claims
 def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
     """A node records a run fed from another process: a wrench that wrench_timeout_s
     clears, a collider pressed into the beam, ~/clear_forces and ~/reset_simulation.

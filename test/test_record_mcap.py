@@ -179,6 +179,7 @@ def test_file_follows_the_rosbag2_conventions(recorded):
     assert json.loads(run["scene_json"])["model"]["modes"] == 6 and run["namespace"] == "/mdss"
 
 
+@pytest.mark.claims
 def test_replay_check_reproduces_every_output_bit_for_bit(recorded, capsys):
     path, _, _ = recorded
     assert mdss(["replay", str(path), "--check"]) == 0
