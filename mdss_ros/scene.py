@@ -378,14 +378,17 @@ def _check_body(data, source, base_dir):
 
 # Keys the reduced model reads from its sub-sections (it checks values when it builds).
 _MODEL_SUBKEYS = {
-    "domains": {"count", "regions", "seed"},
+    "domains": {"count", "regions", "seed", "auto"},
     "cubature": {"samples", "tolerance", "interface", "interface_samples", "training", "seed"},
     "coupling": {"kind", "stiffness"},
 }
 
 
 def _check_model(model, source):
-    """Unknown keys in model.domains / cubature / coupling, and domains given both ways."""
+    """Unknown keys in model.domains / cubature / coupling, and domains given both ways.
+    `domains: auto` becomes {auto: true} (reduced/auto_domains.py places them)."""
+    if model.get("domains") == "auto":
+        model["domains"] = {"auto": True}
     for section, allowed in _MODEL_SUBKEYS.items():
         value = model[section]
         if not isinstance(value, dict):
@@ -394,8 +397,15 @@ def _check_model(model, source):
         if unknown:
             raise SceneError(f"{source}: unknown key(s) {', '.join(f'model.{section}.' + k for k in unknown)} "
                              f"(allowed: {', '.join(sorted(allowed))})")
-    if "count" in model["domains"] and "regions" in model["domains"]:
-        raise SceneError(f"{source}: model.domains: give either count or regions, not both")
+    given = [k for k in ("count", "regions", "auto") if k in model["domains"]]
+    if len(given) > 1:
+        raise SceneError(f"{source}: model.domains: give one of count, regions or auto, not {' and '.join(given)}")
+    if "auto" in model["domains"]:
+        from .reduced.auto_domains import auto_settings     # settings checked on load
+        try:
+            auto_settings(model["domains"]["auto"])
+        except SceneError as err:
+            raise SceneError(f"{source}: {err}") from err
 
 
 def model_config(scene):

@@ -687,17 +687,27 @@ __all__ = [
 ]
 
 
-def domain_labels(domains_cfg, vertices, tets):
-    """Vertex labels and domain names of a scene's `model.domains`: {count: N[, seed]} or
-    {regions: {name: selector}}, optionally with `reach` {name: selector} regions that get
-    domains of their own, carved out last (scene.model_config puts colliders' reach
-    regions there). Domains left empty by the carving are dropped.
+def domain_labels(domains_cfg, vertices, tets, notes=None):
+    """Vertex labels and domain names of a scene's `model.domains`: {count: N[, seed]},
+    {regions: {name: selector}} or {auto: true | {settings}} (reduced/auto_domains.py),
+    optionally with `reach` {name: selector} regions that get domains of their own, carved
+    out last (scene.model_config puts colliders' reach regions there). Domains left empty
+    by the carving are dropped. notes: a list that hears why the domains are where they
+    are (auto placement).
 
     Returns (labels (n_verts,) int64, names [str])."""
     dcfg = domains_cfg or {"count": 1}
+    if dcfg == "auto":
+        dcfg = {"auto": True}
     if not isinstance(dcfg, dict):
-        raise SceneError(f"model.domains: expected {{count: N}} or {{regions: ...}}, got {dcfg!r}")
-    if "regions" in dcfg:
+        raise SceneError(f"model.domains: expected {{count: N}}, {{regions: ...}} or auto, got {dcfg!r}")
+    if "auto" in dcfg:
+        from mdss_ros.reduced.auto_domains import auto_domains, auto_settings
+        graph = vertex_graph(tets, len(vertices), weights=vertices)
+        labels, names, why = auto_domains(vertices, tets, graph, **auto_settings(dcfg["auto"]))
+        if notes is not None:
+            notes.extend(why)
+    elif "regions" in dcfg:
         regions = dcfg["regions"]
         labels = partition_from_regions(vertices, tets, regions)
         names = list(regions) if isinstance(regions, dict) else [f"domain_{i}" for i in range(len(regions))]

@@ -95,9 +95,13 @@ class ReducedModel:
         hit = self.cache.load("bases", self.bases_key)
         if hit is not None:
             labels, names = hit[0]["labels"], list(hit[1]["names"])
+            self.partition_notes = list(hit[1].get("partition_notes", []))
             say(f"cache: bases loaded from {self.cache.path('bases', self.bases_key)}")
         else:
-            labels, names = domain_labels(cfg.get("domains"), body.vertices, body.tets)
+            self.partition_notes = []         # why the domains are where they are (auto placement)
+            labels, names = domain_labels(cfg.get("domains"), body.vertices, body.tets, self.partition_notes)
+            for note in self.partition_notes:
+                say(f"domains: {note}")
         self.partition = build_partition(tets, labels, names=names)
         part = self.partition
         d = part.n_domains
@@ -145,7 +149,7 @@ class ReducedModel:
         if hit is None:
             self.cache.save("bases", self.bases_key,
                             dict({"labels": np.asarray(labels)}, **{f"U_{dom.index}": dom.U for dom in self.subspace}),
-                            {"names": list(names),
+                            {"names": list(names), "partition_notes": list(self.partition_notes),
                              "basis": {str(dom.index): {k: v for k, v in dom.basis_info.items() if k != "seconds"}
                                        for dom in self.subspace}})
         self.sub_index_of_domain = np.array([k if kind == "sub" else -1 for kind, k in self.domain_kind], dtype=np.int64)
@@ -1500,9 +1504,11 @@ class ReducedModel:
         names = self.partition.names
         dcfg = self.cfg.get("domains") or {"count": 1}
         how = (f"user regions ({', '.join(map(str, dcfg['regions']))})" if "regions" in dcfg
+               else "the body's shape: a core and its limbs (model.domains: auto)" if "auto" in dcfg
                else f"METIS split into {dcfg.get('count', 1)} balanced contiguous parts (model.domains.count)")
         lines = [f"reduced model: {len(self.domain_kind)} domains from {how}; {self.n_gen} DOFs "
                  f"({self.S} subspace + {self.F} full-space)"]
+        lines += [f"  domains: {note}" for note in self.partition_notes]
         pinned = np.zeros(len(self.body.vertices), dtype=bool)
         pinned[self.body.pinned] = True
         cub = {k: d for k, d in enumerate(self.cubature_info.get("domains", []))}
