@@ -143,7 +143,7 @@ BASE = {
     ({"body.material.colour": "red"}, ["body.material", "unknown key", "colour"]),
     ({"body.colour": "red"}, ["unknown key", "body.colour"]),
     ({"model.domains": {"cout": 2}}, ["model.domains.cout", "count"]),
-    ({"model.domains": {"count": 2, "regions": {}}}, ["model.domains", "either count or regions"]),
+    ({"model.domains": {"count": 2, "regions": {}}}, ["model.domains", "one of count, regions or auto"]),
     ({"model.cubature": {"sample": 10}}, ["model.cubature.sample", "samples"]),
     ({"timeline": [{"t": 0.1, "topic": "wrench", "frame_id": "tip", "forse": [0, 0, 1]}]},
      ["timeline[0]", "forse"]),
