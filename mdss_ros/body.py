@@ -36,6 +36,7 @@ def build_mesh(spec, base_dir, source="<scene>", cache=None):
     """TetMesh from a scene's body.mesh mapping (a generator or a file). cache: the
     PrecomputeCache that keeps tetrahedralised surface files (default: the user's)."""
     spec = dict(spec)
+    from_file = "file" in spec
     where = f"{source}: body.mesh"
     try:
         if "file" in spec:
@@ -60,7 +61,19 @@ def build_mesh(spec, base_dir, source="<scene>", cache=None):
     except MeshError as err:
         raise SceneError(f"{where}: {err}") from err
     mesh.validate()
+    if from_file:
+        _unit_note(mesh, spec, where)
     return mesh
+
+
+def _unit_note(mesh, spec, where):
+    """Scenes are in metres, and CAD exports are often in millimetres: a body tens of metres
+    across from a file without a scale key is most likely one (a robot part is not)."""
+    import warnings
+    size = float(np.linalg.norm(mesh.vertices.max(0) - mesh.vertices.min(0)))
+    if "scale" not in spec and size > 10.0:
+        warnings.warn(f"{where}: the body is {size:.4g} m across; scene units are metres. If the file is in "
+                      f"millimetres, set body.mesh.scale: 0.001 (and edge_length in metres)", stacklevel=3)
 
 
 def _tetrahedralised_surface(path, spec, cache):

@@ -70,15 +70,18 @@ def test_tetrahedralize_accepts_inside_out_surface(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_non_watertight_obj_is_rejected(tmp_path):
-    surface = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    # Drop both triangles of one square face (the two faces sharing normal -x).
-    keep = ~np.isclose(surface.face_normals[:, 0], -1.0)
-    assert np.count_nonzero(~keep) == 2
+def test_an_obj_missing_two_faces_is_repaired_not_rejected(tmp_path):
+    """Two triangles missing from a box leave one 4-edge hole: trimesh fills it (the shape
+    is unchanged: the two triangles come back), where this used to be rejected."""
+    from mdss_ros.mesh.tetrahedralize import MeshRepairWarning
+    surface = trimesh.creation.box(extents=[0.2, 0.2, 0.2])
+    keep = np.ones(len(surface.faces), dtype=bool)
+    keep[:2] = False
     opened = trimesh.Trimesh(surface.vertices, surface.faces[keep], process=False)
     opened.export(tmp_path / "open.obj")
-    with pytest.raises(MeshError, match=r"open\.obj.*not watertight: 4 edges"):
-        load_mesh(tmp_path / "open.obj")
+    with pytest.warns(MeshRepairWarning, match="filled 1 small holes"):
+        mesh = load_mesh(tmp_path / "open.obj")
+    np.testing.assert_allclose(np.ptp(mesh.vertices, axis=0), [0.2, 0.2, 0.2], rtol=1e-9)
 
 
 def test_tetrahedralize_rejects_bad_arrays():
@@ -150,3 +153,54 @@ def test_a_surface_scene_loaded_twice_gets_the_same_tets_and_builds_nothing(tmp_
     longer = build_body(load_scene(_surface_scene(tmp_path)), other)
     assert [(s, w) for s, w, _ in other.events] == [("tetmesh", "miss"), ("tetmesh", "saved")]
     assert np.ptp(longer.vertices[:, 2]) > np.ptp(first.rest_positions()[:, 2]) + 0.009
+
+
+def test_a_surface_with_a_small_hole_is_repaired_and_says_so(tmp_path, monkeypatch):
+    from mdss_ros.mesh.tetrahedralize import MeshRepairWarning
+    monkeypatch.chdir(tmp_path)
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    trimesh.Trimesh(s.vertices, s.faces[1:], process=False).export(tmp_path / "holed.obj")
+    with pytest.warns(MeshRepairWarning, match="filled 1 small holes"):
+        mesh = load_mesh(tmp_path / "holed.obj", edge_length=0.02)
+    assert len(mesh.tets) > 0 and np.all(signed_volumes(mesh.vertices, mesh.tets) > 0)
+
+
+def test_a_surface_with_a_flipped_triangle_is_rewound_and_says_so(tmp_path, monkeypatch):
+    from mdss_ros.mesh.tetrahedralize import MeshRepairWarning
+    monkeypatch.chdir(tmp_path)
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    f = s.faces.copy()
+    f[5] = f[5][::-1]
+    trimesh.Trimesh(s.vertices, f, process=False).export(tmp_path / "flipped.obj")
+    with pytest.warns(MeshRepairWarning, match="re-wound"):
+        load_mesh(tmp_path / "flipped.obj", edge_length=0.02)
+
+
+def test_a_surface_with_a_large_hole_is_rejected_with_where_the_hole_is(tmp_path):
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    keep = s.triangles_center[:, 2] < 0.04                 # a cap of 28 triangles cut off the top
+    trimesh.Trimesh(s.vertices, s.faces[keep], process=False).export(tmp_path / "open.obj")
+    with pytest.raises(MeshError) as err:
+        load_mesh(tmp_path / "open.obj", edge_length=0.02)
+    msg = str(err.value)
+    assert "1 hole(s) too large to fill" in msg and "edges around" in msg
+    centre = [float(v) for v in msg.split("around [")[1].split("]")[0].split(",")]
+    assert centre[2] > 0.04 and abs(centre[0]) < 0.01 and abs(centre[1]) < 0.01      # at the top
+
+
+def test_scale_turns_millimetres_into_metres_and_a_huge_body_gets_a_unit_note(tmp_path, monkeypatch):
+    from mdss_ros import load_scene
+    from mdss_ros.body import build_body
+    monkeypatch.chdir(tmp_path)
+    trimesh.creation.box(extents=[40.0, 20.0, 20.0]).export(tmp_path / "pad_mm.stl")   # 40 x 20 x 20 mm
+    scene = {"name": "mm", "body": {"mesh": {"file": str(tmp_path / "pad_mm.stl"), "scale": 0.001,
+                                             "edge_length": 0.01},
+                                    "material": {"model": "stvk", "young": 1e5, "poisson": 0.3, "density": 1000}},
+             "model": {"kind": "full"}}
+    body = build_body(load_scene(scene))
+    np.testing.assert_allclose(np.ptp(body.vertices, axis=0), [0.04, 0.02, 0.02], rtol=1e-6)
+    scene["body"]["mesh"] = {"file": str(tmp_path / "pad_mm.stl"), "edge_length": 10.0}
+    with pytest.warns(UserWarning, match="body.mesh.scale: 0.001"):
+        build_body(load_scene(scene))
+    with pytest.raises(MeshError, match="scale must be a positive number"):
+        load_mesh(tmp_path / "pad_mm.stl", scale=-1.0)

@@ -13,7 +13,7 @@ VOLUME_EXTENSIONS = (".vtu", ".msh", ".vtk")
 SURFACE_EXTENSIONS = (".obj", ".stl", ".ply", ".off")
 
 
-def load_mesh(path: str | os.PathLike, edge_length: float | None = None) -> TetMesh:
+def load_mesh(path: str | os.PathLike, edge_length: float | None = None, scale: float = 1.0) -> TetMesh:
     """Load a tet mesh, or tetrahedralise a closed surface file.
 
     Volume files (.vtu, .msh, .vtk) are read with meshio; all linear
@@ -25,8 +25,11 @@ def load_mesh(path: str | os.PathLike, edge_length: float | None = None) -> TetM
 
     Args:
         path: file path; the extension selects the reader (case-insensitive).
-        edge_length: target tet edge length for surface files; ignored for
-            volume files. None uses fTetWild's default (bbox diagonal / 20).
+        edge_length: target tet edge length for surface files, in metres of the
+            scaled body; ignored for volume files. None uses fTetWild's default
+            (bbox diagonal / 20).
+        scale: factor from the file's units to metres (0.001 for a CAD file in
+            millimetres), applied before meshing.
     Returns:
         TetMesh with (n_verts, 3) vertices and (n_tets, 4) positive tets.
     Raises:
@@ -42,9 +45,12 @@ def load_mesh(path: str | os.PathLike, edge_length: float | None = None) -> TetM
         )
     if not os.path.isfile(path):
         raise MeshError(f"{path}: mesh file not found")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (np.isfinite(scale) and scale > 0):
+        raise MeshError(f"{path}: scale must be a positive number (0.001 for millimetres), got {scale!r}")
     if ext in VOLUME_EXTENSIONS:
-        return _load_volume(path)
-    return _load_surface(path, edge_length)
+        mesh = _load_volume(path)
+        return mesh if scale == 1.0 else TetMesh(mesh.vertices * float(scale), mesh.tets)
+    return _load_surface(path, edge_length, float(scale))
 
 
 def save_mesh(path: str | os.PathLike, mesh: TetMesh) -> None:
@@ -106,7 +112,7 @@ def _read_msh(path: str):
     return meshio.ansys.read(path)
 
 
-def _load_surface(path: str, edge_length: float | None) -> TetMesh:
+def _load_surface(path: str, edge_length: float | None, scale: float = 1.0) -> TetMesh:
     import trimesh
 
     from mdss_ros.mesh.tetrahedralize import tetrahedralize
@@ -119,6 +125,6 @@ def _load_surface(path: str, edge_length: float | None) -> TetMesh:
     if not isinstance(surface, trimesh.Trimesh) or len(surface.faces) == 0:
         raise MeshError(f"{path}: surface file contains no triangles")
     try:
-        return tetrahedralize(surface.vertices, surface.faces, edge_length=edge_length)
+        return tetrahedralize(np.asarray(surface.vertices) * scale, surface.faces, edge_length=edge_length)
     except MeshError as exc:
         raise MeshError(f"{path}: {exc}") from None

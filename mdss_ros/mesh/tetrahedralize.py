@@ -16,6 +16,7 @@ import contextlib
 import os
 import tempfile
 import threading
+import warnings
 
 import numpy as np
 
@@ -123,18 +124,85 @@ def _checked_surface(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"surface faces reference vertex indices outside [0, {v.shape[0]})")
 
     mesh = trimesh.Trimesh(v, f, process=True, validate=False)
-    n_open = count_unpaired_edges(mesh.faces)
-    if n_open:
-        raise MeshError(
-            f"surface is not watertight: {n_open} edges are not shared by exactly 2 triangles"
-        )
+    changes = []
+    n0 = len(mesh.faces)
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    if len(mesh.faces) < n0:
+        changes.append(f"removed {n0 - len(mesh.faces)} degenerate or duplicate triangles")
+    # Exported CAD and scan meshes are often not quite closed. What a library repairs
+    # without changing the shape (holes of 3 or 4 edges, inconsistent winding) is repaired
+    # and said; anything else is rejected with the defect and where it is.
+    holes = boundary_loops(mesh.vertices, mesh.faces)
+    if holes:
+        trimesh.repair.fill_holes(mesh)
+        left = boundary_loops(mesh.vertices, mesh.faces)
+        if len(left) < len(holes):
+            changes.append(f"filled {len(holes) - len(left)} small holes (3 or 4 edges)")
+        if left:
+            worst = ", ".join(f"{n} edges around {np.round(c, 4).tolist()} ({size:.3g} across)"
+                              for n, c, size in left[:3])
+            raise MeshError(f"surface is not watertight: {len(left)} hole(s) too large to fill without changing "
+                            f"the shape; largest: {worst}. Close them in a mesh tool (e.g. MeshLab, Blender's "
+                            f"3D-print toolbox), or give a tet mesh (.vtu, .msh)")
+    over = non_manifold_edges(mesh.faces)
+    if len(over):
+        where = np.round(mesh.vertices[over[0]].mean(0), 4).tolist()
+        raise MeshError(f"surface is not a 2-manifold: {len(over)} edges are shared by more than two triangles "
+                        f"(the first near {where}); separate the touching parts or give a tet mesh")
     if not mesh.is_winding_consistent:
-        raise MeshError("surface is not consistently wound (some triangles face inward)")
+        trimesh.repair.fix_winding(mesh)
+        if not mesh.is_winding_consistent:
+            raise MeshError("surface is not consistently wound and could not be re-wound")
+        changes.append("re-wound the triangles that faced inward")
+    if changes:
+        warnings.warn(f"surface repaired: {'; '.join(changes)}", MeshRepairWarning, stacklevel=3)
     if mesh.volume < 0:
         mesh.invert()
     if mesh.volume <= 0:
         raise MeshError("surface encloses zero volume")
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+class MeshRepairWarning(UserWarning):
+    """A surface file was repaired on load; the message says exactly what changed."""
+
+
+def _edges(faces):
+    """(unique undirected edges (e, 2), their triangle counts (e,)) of triangles (t, 3)."""
+    f = np.asarray(faces, dtype=np.int64)
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(edges, axis=0, return_counts=True)
+
+
+def boundary_loops(vertices, faces):
+    """The holes of a triangle surface, largest first: [(edge count, centre (3,), size)],
+    from the edges used by one triangle only, grouped into connected loops; size is the
+    largest distance between two of a loop's vertices."""
+    import scipy.sparse as sp
+    from scipy.sparse import csgraph
+
+    edges, counts = _edges(faces)
+    open_edges = edges[counts == 1]
+    if not len(open_edges):
+        return []
+    ids, local = np.unique(open_edges, return_inverse=True)
+    local = local.reshape(-1, 2)
+    g = sp.coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(len(ids), len(ids)))
+    n, label = csgraph.connected_components(g, directed=False)
+    x = np.asarray(vertices, dtype=np.float64)[ids]
+    out = []
+    for k in range(n):                              # one entry per hole, not per vertex
+        pts = x[label == k]
+        size = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+        out.append((int(np.count_nonzero(label[local[:, 0]] == k)), pts.mean(0), size))
+    return sorted(out, key=lambda h: (-h[0], -h[2]))
+
+
+def non_manifold_edges(faces):
+    """(k, 2) edges shared by more than two triangles."""
+    edges, counts = _edges(faces)
+    return edges[counts > 2]
 
 
 def count_unpaired_edges(faces: np.ndarray) -> int:
@@ -145,7 +213,5 @@ def count_unpaired_edges(faces: np.ndarray) -> int:
     Returns:
         0 for a closed 2-manifold surface.
     """
-    f = np.asarray(faces, dtype=np.int64)
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    _, counts = _edges(faces)
     return int(np.count_nonzero(counts != 2))
