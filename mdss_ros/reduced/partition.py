@@ -196,6 +196,89 @@ def make_contiguous(tets, labels, n_domains: int | None = None) -> np.ndarray:
     return _repair_contiguity(vertex_graph(t, labels.shape[0]), labels, d)
 
 
+def tet_face_pairs(tets: np.ndarray) -> np.ndarray:
+    """(k, 2) pairs of tets that share a triangle (each interior face once)."""
+    t = np.asarray(tets, dtype=np.int64)
+    faces = np.sort(np.concatenate([t[:, [0, 1, 2]], t[:, [0, 1, 3]], t[:, [0, 2, 3]], t[:, [1, 2, 3]]]), axis=1)
+    owner = np.tile(np.arange(len(t)), 4)
+    _, inv = np.unique(faces, axis=0, return_inverse=True)
+    order = np.argsort(inv.ravel(), kind="stable")
+    inv_s, own = inv.ravel()[order], owner[order]
+    same = inv_s[1:] == inv_s[:-1]
+    return np.stack([own[:-1][same], own[1:][same]], axis=1)
+
+
+def repair_hinges(tets, labels, graph=None):
+    """Make every domain's own elements (tets with all four vertices in it) one piece
+    joined through faces, and give every domain at least one such element.
+
+    A domain whose elements touch only along an edge or at a vertex (a hinge), or that
+    holds no element of its own (a layer one tet thick), has a floppy sub-mesh: its modal
+    basis finds a zero-energy mode besides the rigid ones and the build fails. METIS
+    balances vertices and keeps domains edge-connected, which does not prevent either on
+    thin parts. Per sweep: each domain keeps its largest face-connected piece of elements;
+    the vertices of its other pieces, and all vertices of a domain without elements, move
+    to the neighbouring domain they share the most tet edges with (ties: lowest label).
+
+    Returns (labels (n,) int64 with consecutive labels from 0, old label of each new label
+    (d',), number of vertices moved). A domain can vanish (its vertices all moved): the
+    second array says which ones are left."""
+    t = np.asarray(tets, dtype=np.int64)
+    labels = np.asarray(labels, dtype=np.int64).copy()
+    n = len(labels)
+    graph = vertex_graph(t, n) if graph is None else graph
+    coo = graph.tocoo()
+    pairs = tet_face_pairs(t)
+    moved = np.zeros(n, dtype=bool)
+    protected = -1          # a domain without elements allowed to stay and absorb (see below)
+    for _ in range(_MAX_REPAIR_SWEEPS * 4):
+        lab_t = labels[t]
+        own = np.all(lab_t == lab_t[:, :1], axis=1)                    # domain elements
+        el_label = np.where(own, lab_t[:, 0], -1)
+        keep = own[pairs[:, 0]] & own[pairs[:, 1]] & (el_label[pairs[:, 0]] == el_label[pairs[:, 1]])
+        m = len(t)
+        g = sp.coo_matrix((np.ones(int(keep.sum())), (pairs[keep, 0], pairs[keep, 1])), shape=(m, m))
+        _, piece = csgraph.connected_components(g, directed=False)
+        piece = np.where(own, piece, -1)
+        # main piece per label: the one with most elements (ties: lowest piece id)
+        ids = np.flatnonzero(own)
+        key, size = np.unique(np.stack([el_label[ids], piece[ids]], axis=1), axis=0, return_counts=True)
+        order = np.lexsort((key[:, 1], -size, key[:, 0]))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = key[order[1:], 0] != key[order[:-1], 0]
+        main = set(map(int, key[order[first], 1]))
+        has_elements = np.zeros(int(labels.max()) + 1, dtype=bool)
+        has_elements[key[:, 0]] = True
+        in_main = np.zeros(n, dtype=bool)
+        main_t = np.isin(piece, list(main))
+        in_main[t[main_t].ravel()] = True
+        in_other = np.zeros(n, dtype=bool)
+        in_other[t[own & ~main_t].ravel()] = True
+        to_move = (in_other & ~in_main) | (~has_elements[labels] & (labels != protected))
+        if not to_move.any():
+            break
+        # target: the other label sharing the most edges with each moving vertex
+        sel = to_move[coo.row] & (labels[coo.col] != labels[coo.row]) & ~to_move[coo.col]
+        if not sel.any():
+            # every neighbour moves too (no domain of a thin body holds an element): the
+            # largest domain stays and absorbs its neighbours until it holds elements
+            sizes = np.bincount(labels[to_move], minlength=int(labels.max()) + 1)
+            if protected == int(np.argmax(sizes)):
+                break
+            protected = int(np.argmax(sizes))
+            continue
+        d = int(labels.max()) + 1
+        k, cnt = np.unique(coo.row[sel] * d + labels[coo.col[sel]], return_counts=True)
+        v_of, l_of = k // d, k % d
+        best = np.lexsort((l_of, -cnt, v_of))
+        take = np.ones(len(best), dtype=bool)
+        take[1:] = v_of[best[1:]] != v_of[best[:-1]]
+        labels[v_of[best[take]]] = l_of[best[take]]
+        moved[v_of[best[take]]] = True
+    used, labels = np.unique(labels, return_inverse=True)
+    return labels.astype(np.int64), used, int(moved.sum())
+
+
 def _fill_empty_domains(graph: sp.csr_matrix, labels: np.ndarray, count: int) -> np.ndarray:
     """Give every empty domain one vertex, keeping the donor domain connected.
 
@@ -716,7 +799,15 @@ def domain_labels(domains_cfg, vertices, tets, notes=None):
         if not isinstance(count, int) or count < 1:
             raise SceneError(f"model.domains.count: expected an integer >= 1, got {count!r}")
         labels = partition_vertices(vertices, tets, count, seed=int(dcfg.get("seed", 0)))
-        names = [f"domain_{i}" for i in range(count)]
+        labels, kept, moved = repair_hinges(tets, labels)
+        names = [f"domain_{i}" for i in range(len(kept))]
+        if notes is not None and moved:
+            lost = count - len(kept)
+            notes.append(f"{moved} vertices moved to a neighbouring domain so that every domain's own elements "
+                         f"join through faces (METIS left pieces hinged on an edge or vertex, or too thin to "
+                         f"hold an element)"
+                         + (f"; {lost} of the {count} requested domains held no element of their own and "
+                            f"were merged into their neighbours: {len(kept)} domains" if lost else ""))
     labels = np.asarray(labels, dtype=np.int64).copy()
     names = list(names)
     for name, spec in (dcfg.get("reach") or {}).items():
