@@ -101,34 +101,30 @@ class InputPublisher(Node):
         o.x, o.y, o.z, o.w = (float(v) for v in orientation)
         self._pub(f"colliders/{name}/pose", PoseStamped).publish(msg)
 
-    def clear_forces(self, timeout=10.0):
-        client = self.create_client(Trigger, f"{self.target}/clear_forces")
+    def _call(self, srv_type, name, timeout):
+        """Call the node's service ~/name with an empty request; its response (TimeoutError
+        when the service is missing or does not answer in time)."""
+        client = self.create_client(srv_type, f"{self.target}/{name}")
         try:
             if not client.wait_for_service(timeout_sec=timeout):
-                raise TimeoutError(f"{self.target}/clear_forces is not available")
-            fut = client.call_async(Trigger.Request())
-            deadline = time.monotonic() + timeout
-            while not fut.done() and time.monotonic() < deadline:
-                time.sleep(0.005)
-            return fut.result()
-        finally:
-            self.destroy_client(client)
-
-    def unpause(self, timeout=10.0):
-        """Call ~/unpause_physics (std_srvs/Empty) and wait for the answer."""
-        from std_srvs.srv import Empty
-        client = self.create_client(Empty, f"{self.target}/unpause_physics")
-        try:
-            if not client.wait_for_service(timeout_sec=timeout):
-                raise TimeoutError(f"{self.target}/unpause_physics is not available")
-            fut = client.call_async(Empty.Request())
+                raise TimeoutError(f"{self.target}/{name} is not available")
+            fut = client.call_async(srv_type.Request())
             deadline = time.monotonic() + timeout
             while not fut.done() and time.monotonic() < deadline:
                 time.sleep(0.005)
             if not fut.done():
-                raise TimeoutError(f"{self.target}/unpause_physics did not answer in {timeout} s")
+                raise TimeoutError(f"{self.target}/{name} did not answer in {timeout} s")
+            return fut.result()
         finally:
             self.destroy_client(client)
+
+    def clear_forces(self, timeout=10.0):
+        return self._call(Trigger, "clear_forces", timeout)
+
+    def unpause(self, timeout=10.0):
+        """Call ~/unpause_physics (std_srvs/Empty) and wait for the answer."""
+        from std_srvs.srv import Empty
+        self._call(Empty, "unpause_physics", timeout)
 
     def flush(self, timeout=10.0):
         """Wait until every subscriber acknowledged everything published (reliable QoS)."""
