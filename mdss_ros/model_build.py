@@ -23,8 +23,12 @@ def build_model(scene, body, progress=None, cache=None):
         from .reduced.reduced_model import ReducedModel
         return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
                             progress=progress, cache=cache)
+    if kind == "meshless":
+        from .meshless.model import MeshlessModel
+        return MeshlessModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
+                             settings=model["meshless"], solver=model["solver"])
     raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
-                     f"(available: full, reduced)")
+                     f"(available: full, reduced, meshless)")
 
 
 def estimate_precompute_seconds(n_tets, n_domains, modes, samples):

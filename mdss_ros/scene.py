@@ -78,6 +78,23 @@ def _choice(*options):
     return check
 
 
+def _neighbours(value, where):
+    if not isinstance(value, int) or isinstance(value, bool) or not 4 <= value <= 64:
+        raise SceneError(f"{where}: expected an integer from 4 to 64 (the paper uses 16), got {value!r}")
+    return value
+
+
+def _support_scale(value, where):
+    if not isinstance(value, _NUM) or isinstance(value, bool) or not 0.5 <= value <= 10.0:
+        raise SceneError(f"{where}: expected a number from 0.5 to 10 (support radius / mean distance to "
+                         f"the neighbours), got {value!r}")
+    return float(value)
+
+
+def _substeps(value, where):
+    return value if value == "auto" else _posint(value, where)
+
+
 def _any(value, where):
     return value
 
@@ -126,6 +143,16 @@ SCHEMA = {
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
         "budget": (_any, {}),
+        # model.kind: meshless (mdss_ros/meshless, docs/method.md §19): neighbours per node, support
+        # radius in mean neighbour distances, volume term k_v in units of mu, time integrator and
+        # RK4 sub-steps per step ("auto": from the highest frequency at rest).
+        "meshless": {
+            "neighbours": (_neighbours, 16),
+            "support_scale": (_support_scale, 2.0),
+            "volume_stiffness": (_nonneg, 0.1),
+            "integrator": (_choice("implicit", "rk4"), "implicit"),
+            "substeps": (_substeps, "auto"),
+        },
         # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
         # a diverging one with more Newton iterations and sub-steps.
         "guard": {

@@ -19,7 +19,7 @@ LAYERS = [
     ("base", ["mdss_ros.errors", "mdss_ros.version", "mdss_ros.rotations", "mdss_ros.loads",
               "mdss_ros.linear_solver", "mdss_ros.threads", "mdss_ros.precompute", "mdss_ros.timeline",
               "mdss_ros.state_measure"]),
-    ("mesh, fem, contact", ["mdss_ros.mesh", "mdss_ros.fem", "mdss_ros.contact"]),
+    ("mesh, fem, contact", ["mdss_ros.mesh", "mdss_ros.fem", "mdss_ros.contact", "mdss_ros.meshless"]),
     ("reduced", ["mdss_ros.reduced"]),
     ("model build", ["mdss_ros.body", "mdss_ros.scene", "mdss_ros.model_build"]),
     ("simulator", ["mdss_ros.simulator", "mdss_ros.guard", "mdss_ros.accuracy", "mdss_ros.budget"]),

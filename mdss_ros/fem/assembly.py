@@ -20,8 +20,8 @@ class StiffnessPattern:
     n_free: number of free DOFs.
     free_dof: (3 * n_verts,) free index of each full DOF, -1 if pinned.
     indptr: (n_free + 1,), indices: (nnz,) CSR pattern (columns sorted).
-    scatter: (n_tets, 144) position in the CSR data of element entry (r, c) = r*12 + c,
-             -1 when the entry touches a pinned DOF.
+    scatter: (n_elements, (3w)^2) position in the CSR data of element entry (r, c) =
+             r*3w + c (w = 4 for a tet: 144), -1 when the entry touches a pinned DOF.
     diagonal: (n_free,) position of each diagonal entry in the data array.
     """
 
@@ -42,14 +42,18 @@ class StiffnessPattern:
 
 
 def element_dofs(tets):
-    """Full DOF indices of each element: (n_tets, 12), ordered vertex-major."""
-    return (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(len(tets), 12)
+    """Full DOF indices of each element: (n_elements, 3w) for elements of w vertices
+    (tets: w = 4, 12 DOFs), ordered vertex-major."""
+    n, w = tets.shape
+    return (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(n, 3 * w)
 
 
 def stiffness_pattern(tets, n_verts, pinned=()):
     """Build the CSR pattern of the free-DOF stiffness and the element scatter map.
 
-    tets: (n_tets, 4); pinned: vertex indices whose DOFs are removed.
+    tets: (n_elements, w) vertex ids of each element: tets (w = 4), or the meshless
+    model's stencils (a node and its neighbours); pinned: vertex indices whose DOFs are
+    removed.
     """
     tets = np.asarray(tets, dtype=np.int64)
     is_free = np.ones(3 * n_verts, dtype=bool)
@@ -60,9 +64,10 @@ def stiffness_pattern(tets, n_verts, pinned=()):
     free_dof[is_free] = np.arange(int(is_free.sum()))
     n_free = int(is_free.sum())
 
-    edofs = free_dof[element_dofs(tets)]                   # (n_tets, 12)
-    rows = np.repeat(edofs, 12, axis=1)                    # entry r*12+c -> row of r
-    cols = np.tile(edofs, (1, 12))                         # entry r*12+c -> col of c
+    edofs = free_dof[element_dofs(tets)]                   # (n_elements, 3w)
+    m = edofs.shape[1]
+    rows = np.repeat(edofs, m, axis=1)                     # entry r*m+c -> row of r
+    cols = np.tile(edofs, (1, m))                          # entry r*m+c -> col of c
     valid = (rows >= 0) & (cols >= 0)
     keys = rows * n_free + cols
     # Every free DOF gets its diagonal entry, also a vertex no element references (a
@@ -87,17 +92,17 @@ def _scatter_add(values, scatter, out):
 
 
 def assemble_matrix(pattern, element_mats, out=None):
-    """Sum element matrices (n_tets, 12, 12) into the pattern's data array (nnz,)."""
+    """Sum element matrices (n_elements, 3w, 3w) into the pattern's data array (nnz,)."""
     if out is None:
         out = np.zeros(pattern.nnz)
     else:
         out[:] = 0.0
-    _scatter_add(element_mats.reshape(len(element_mats), 144), pattern.scatter, out)
+    _scatter_add(np.ascontiguousarray(element_mats).reshape(len(element_mats), -1), pattern.scatter, out)
     return out
 
 
 def assemble_vector(tets, element_vecs, n_verts):
-    """Sum element vectors (n_tets, 4, 3) into a per-vertex array (n_verts, 3)."""
+    """Sum element vectors (n_elements, w, 3) into a per-vertex array (n_verts, 3)."""
     out = np.zeros((n_verts, 3))
     for i in range(3):
         out[:, i] = np.bincount(tets.ravel(), weights=element_vecs[:, :, i].ravel(), minlength=n_verts)

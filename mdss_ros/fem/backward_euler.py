@@ -189,16 +189,7 @@ class BackwardEuler:
         v_new = m.expand(vk)
         x_new = x + dt * v_new
         if rows is not None:
-            verts, _, _, normals, which = rows
-            depth = np.zeros(len(verts))
-            for c_idx, col in enumerate(contact["colliders"]):
-                sel = which == c_idx
-                if sel.any():
-                    depth[sel] = np.maximum(-col.signed_distance(x_new[verts[sel]])[0], 0.0)
-            active = lam > 0
-            self.contact = {"vertices": verts[active], "normals": normals[active], "which": which[active],
-                            "forces": lam[active, None] * normals[active], "points": x_new[verts[active]],
-                            "depth": depth[active], "candidates": int(len(verts))}
+            self.contact = contact_record(contact["colliders"], rows, lam, x_new)
         self.stats = {
             "newton_iterations": iterations,
             "converged": bool(converged or s.max_iterations == 1),
@@ -212,3 +203,19 @@ class BackwardEuler:
         if lcp:
             self.stats.update(contact_rows=lcp["rows"], contact_working_set=lcp["working_set"])
         return x_new, v_new
+
+
+def contact_record(colliders, rows, lam, x_new):
+    """What a step reports of its contacts: the active rows (lam > 0) of the candidates
+    rows = (vertices, C, phi, normals, which) with their forces lam n, points and depths
+    at the end-of-step positions x_new (n_verts, 3). Loops over colliders, not vertices."""
+    verts, _, _, normals, which = rows
+    depth = np.zeros(len(verts))
+    for c_idx, col in enumerate(colliders):
+        sel = which == c_idx
+        if sel.any():
+            depth[sel] = np.maximum(-col.signed_distance(x_new[verts[sel]])[0], 0.0)
+    active = lam > 0
+    return {"vertices": verts[active], "normals": normals[active], "which": which[active],
+            "forces": lam[active, None] * normals[active], "points": x_new[verts[active]],
+            "depth": depth[active], "candidates": int(len(verts))}

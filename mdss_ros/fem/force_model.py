@@ -16,7 +16,26 @@ from .elements import ElementBuffers, element_forces, tet_geometry
 from .mass import consistent_mass_elements, lumped_mass
 
 
-class FEMForceModel:
+class FreeDofs:
+    """Free-DOF bookkeeping of a force model on a fem.assembly.StiffnessPattern (self.pattern,
+    self.n_verts): pinned DOFs are dropped from vectors and restored as `fill`."""
+
+    @property
+    def n_free(self):
+        return self.pattern.n_free
+
+    def free(self, a):
+        """Restrict a per-vertex array (n_verts, 3) to the free DOF vector (n_free,)."""
+        return a.reshape(-1)[self.pattern.free_dof >= 0]
+
+    def expand(self, a_free, fill=0.0):
+        """Inverse of free(): (n_free,) -> (n_verts, 3) with pinned DOFs set to fill."""
+        out = np.full(3 * self.n_verts, fill, dtype=np.float64)
+        out[self.pattern.free_dof >= 0] = a_free
+        return out.reshape(self.n_verts, 3)
+
+
+class FEMForceModel(FreeDofs):
     """Elasticity of a tet mesh with one material.
 
     X: (n_verts, 3) rest positions; tets: (n_tets, 4) positively oriented;
@@ -52,20 +71,6 @@ class FEMForceModel:
         if self._buffers is None:
             self._buffers = ElementBuffers(len(self.tets), want_hessian=False)
         return self._buffers
-
-    @property
-    def n_free(self):
-        return self.pattern.n_free
-
-    def free(self, a):
-        """Restrict a per-vertex array (n_verts, 3) to the free DOF vector (n_free,)."""
-        return a.reshape(-1)[self.pattern.free_dof >= 0]
-
-    def expand(self, a_free, fill=0.0):
-        """Inverse of free(): (n_free,) -> (n_verts, 3) with pinned DOFs set to fill."""
-        out = np.full(3 * self.n_verts, fill, dtype=np.float64)
-        out[self.pattern.free_dof >= 0] = a_free
-        return out.reshape(self.n_verts, 3)
 
     def energy(self, x):
         e, _, _ = element_forces(x, self.tets, self.geom, self.material, want_hessian=False, out=self._buf())

@@ -10,22 +10,11 @@ from .backward_euler import BackwardEuler, NewtonSettings
 from .force_model import FEMForceModel
 
 
-class FullSpaceModel:
-    """State x, v (n_verts, 3). step(f_ext) advances by dt with backward Euler."""
-
-    kind = "full"
-
-    def __init__(self, body, dt, integrator, damping, mass="lumped", solver="auto"):
-        self.body = body
-        self.force_model = FEMForceModel(body.vertices, body.tets, body.material, body.pinned, mass=mass)
-        settings = NewtonSettings(max_iterations=integrator["newton_iterations"],
-                                  tolerance=integrator["tolerance"],
-                                  line_search=integrator["line_search"],
-                                  projection=integrator["projection"],
-                                  alpha=damping["alpha"], beta=damping["beta"])
-        self.integrator = BackwardEuler(self.force_model, dt, settings, solver)
-        self.vertex_mass = self.force_model.vertex_mass
-        self.reset()
+class VertexState:
+    """The part of a model whose state is every vertex's position and velocity x, v
+    (n_verts, 3), with pinned vertices at rest: the full-space FEM and the meshless model.
+    Needs body, vertex_mass, force_model (energy(x), n_free) and integrator (dt, step(x, v,
+    f_ext, contact) -> (x, v), stats, contact: BackwardEuler or meshless.explicit.RK4)."""
 
     def reset(self):
         self.x = self.body.vertices.copy()
@@ -49,6 +38,7 @@ class FullSpaceModel:
         contact: see BackwardEuler.step (colliders at their end-of-step poses)."""
         if isinstance(f_ext, VertexLoads):
             f_ext = f_ext.dense()            # every vertex is an unknown here anyway
+        f_ext = np.asarray(f_ext, dtype=np.float64)
         if gravity is not None:
             f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
         self.x, self.v = self.integrator.step(self.x, self.v, f_ext, contact)
@@ -95,13 +85,32 @@ class FullSpaceModel:
     def elastic_energy(self):
         return self.force_model.energy(self.x)
 
+    def domain_poses(self):
+        """One domain: the body's mass centre and best-fit rotation (polar decomposition)."""
+        return best_fit_pose(self.body.vertices, self.x, self.vertex_mass)[None, :]
+
+
+class FullSpaceModel(VertexState):
+    """State x, v (n_verts, 3). step(f_ext) advances by dt with backward Euler."""
+
+    kind = "full"
+
+    def __init__(self, body, dt, integrator, damping, mass="lumped", solver="auto"):
+        self.body = body
+        self.force_model = FEMForceModel(body.vertices, body.tets, body.material, body.pinned, mass=mass)
+        settings = NewtonSettings(max_iterations=integrator["newton_iterations"],
+                                  tolerance=integrator["tolerance"],
+                                  line_search=integrator["line_search"],
+                                  projection=integrator["projection"],
+                                  alpha=damping["alpha"], beta=damping["beta"])
+        self.integrator = BackwardEuler(self.force_model, dt, settings, solver)
+        self.vertex_mass = self.force_model.vertex_mass
+        self.reset()
+
     def kinetic_energy(self):
         return 0.5 * float((self.vertex_mass * (self.v * self.v).sum(1)).sum()) if self.force_model.mass_kind == "lumped" \
             else 0.5 * float(self.force_model.free(self.v) @ (self.force_model.M @ self.force_model.free(self.v)))
 
-    def domain_poses(self):
-        """One domain: the body's mass centre and best-fit rotation (polar decomposition)."""
-        return best_fit_pose(self.body.vertices, self.x, self.vertex_mass)[None, :]
 
 
 def best_fit_pose(X, x, mass):

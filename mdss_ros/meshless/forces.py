@@ -1,0 +1,143 @@
+"""Meshless elastic energy, forces and stiffness with nodal integration (docs/method.md §19.3).
+
+Per node i (n nodes), with F_i from the MLS operator (mls.py) and V_i its volume (model.py):
+
+    Eg_i  = (F_i^T F_i - I) / 2                           Green strain ([HZ] eq. 4)
+    S_i   = lam tr(Eg_i) I + 2 mu Eg_i                     linear-elastic (StVK) stress ([HZ] eq. 5)
+    psi_i = mu Eg_i:Eg_i + lam/2 tr(Eg_i)^2 + k_v/2 (J_i - 1)^2,   J_i = det F_i   ([HZ] eqs. 10, 12)
+    E     = sum_i V_i psi_i                                nodal integration
+
+The discrete energy E(x) is the model; forces and stiffness are its exact derivatives
+(sign convention of §1: f_int = dE/dx, K = d f_int/dx):
+
+    P_i   = dpsi/dF = F_i S_i + k_v (J_i - 1) cof(F_i)                         (3, 3)
+    f_{s_ia}  += V_i P_i c_ia                                                    (3,)
+    H_i[(p,J),(q,L)] = d2psi / dF_pJ dF_qL                                       (9, 9)
+          = delta_pq S_LJ + lam F_pJ F_qL + mu F_pL F_qJ + mu (F F^T)_pq delta_JL
+            + k_v cof_pJ cof_qL + k_v (J - 1) eps_pqm eps_JLN F_mN
+    K_i[(a,p),(b,q)] = V_i sum_{J,L} c_ia[J] H_i[(p,J),(q,L)] c_ib[L]         (3w, 3w), w = k + 1
+
+([HZ] eq. 11 writes the force on i and on j as the directional derivatives of U_i; summing
+V_i P_i c_ia over every stencil that holds a node is the same thing.) The Hessian is
+symmetric; with project=True each H_i is replaced by its PSD part (eigen-decomposition of
+the (9, 9) matrix, negative eigenvalues set to 0), so K is positive semi-definite.
+
+Arrays: x (n_nodes, 3); F, P (n, 3, 3); H (n, 9, 9) row-major vec(F)[3 p + J] = F[p, J]
+(§1); stencil matrices (n, 3w, 3w); data of K on the free DOFs (nnz,).
+"""
+import time
+
+import numpy as np
+
+from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
+from ..fem.force_model import FreeDofs
+
+_EPS = np.zeros((3, 3, 3))
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+
+
+def cofactor(F):
+    """cof(F) = det(F) F^-T, written without the inverse: (n, 3, 3)."""
+    return 0.5 * np.einsum("ijk,JKL,njK,nkL->niJ", _EPS, _EPS, F, F, optimize=True)
+
+
+def stvk_volume(F, mu, lam, kv, want_hessian=False, project=False):
+    """psi (n,), P (n, 3, 3), H (n, 9, 9) or None of the meshless law at F (n, 3, 3)."""
+    n = len(F)
+    eye = np.eye(3)
+    C = np.einsum("nkA,nkB->nAB", F, F)
+    Eg = 0.5 * (C - eye)
+    tr = np.trace(Eg, axis1=1, axis2=2)
+    S = lam * tr[:, None, None] * eye + 2.0 * mu * Eg
+    J = np.linalg.det(F)
+    cof = cofactor(F)
+    psi = mu * np.einsum("nab,nab->n", Eg, Eg) + 0.5 * lam * tr * tr + 0.5 * kv * (J - 1.0) ** 2
+    P = F @ S + (kv * (J - 1.0))[:, None, None] * cof
+    if not want_hessian:
+        return psi, P, None
+    FFt = F @ F.transpose(0, 2, 1)
+    H = (np.einsum("pq,nLJ->npJqL", eye, S)
+         + lam * np.einsum("npJ,nqL->npJqL", F, F)
+         + mu * np.einsum("npL,nqJ->npJqL", F, F)
+         + mu * np.einsum("npq,JL->npJqL", FFt, eye)
+         + kv * np.einsum("npJ,nqL->npJqL", cof, cof)
+         + (kv * (J - 1.0))[:, None, None, None, None] * np.einsum("pqm,JLN,nmN->npJqL", _EPS, _EPS, F,
+                                                                  optimize=True))
+    H = H.reshape(n, 9, 9)
+    if project:
+        H = psd_project(H)
+    return psi, P, H
+
+
+def psd_project(H):
+    """(n, 9, 9) symmetric matrices with negative eigenvalues set to zero (unchanged where
+    none is below -1e-13 of the largest magnitude)."""
+    H = 0.5 * (H + H.transpose(0, 2, 1))
+    lam, Q = np.linalg.eigh(H)
+    neg = (lam < -1e-13 * np.abs(lam).max(axis=1, keepdims=True)).any(axis=1)
+    if neg.any():
+        lp = np.maximum(lam[neg], 0.0)
+        H[neg] = np.einsum("nab,nb,ncb->nac", Q[neg], lp, Q[neg], optimize=True)
+    return H
+
+
+def stencil_stiffness(c, H, V):
+    """K_i (n, 3w, 3w) = V_i B_i^T H_i B_i with vec(F_i) = B_i x_stencil (row 3a + p)."""
+    n, w, _ = c.shape
+    H5 = H.reshape(n, 3, 3, 3, 3)                                     # p J q L
+    T = np.matmul(H5.reshape(n, 27, 3), c.transpose(0, 2, 1))       # (n, pJq, b)
+    T = T.reshape(n, 3, 3, 3, w).transpose(0, 2, 1, 3, 4).reshape(n, 3, 9 * w)   # (n, J, p q b)
+    K = np.matmul(c, T).reshape(n, w, 3, 3, w)                        # a p q b
+    return (V[:, None, None, None, None] * K).transpose(0, 1, 2, 4, 3).reshape(n, 3 * w, 3 * w)
+
+
+class MeshlessForces(FreeDofs):
+    """The force-model interface BackwardEuler steps (as fem.force_model.FEMForceModel):
+    energy(x), forces(x), tangent(x, project) -> (E, f_int (n_verts, 3), K data (nnz,)),
+    free/expand, M on the pattern, vertex_mass, n_free, pattern.
+
+    op: mls.GradientOperator; V (n,) nodal volumes; mass (n,) nodal masses;
+    mu, lam, kv: Lame parameters and volume stiffness (Pa); pinned: fixed node ids."""
+
+    mass_kind = "lumped"
+
+    def __init__(self, X, op, V, mass, mu, lam, kv, pinned=()):
+        self.X = np.ascontiguousarray(X, dtype=np.float64)
+        self.n_verts = len(self.X)
+        self.op = op
+        self.V = np.asarray(V, dtype=np.float64)
+        self.mu, self.lam, self.kv = float(mu), float(lam), float(kv)
+        self.pinned = np.unique(np.asarray(pinned, dtype=np.int64))
+        self.pattern = stiffness_pattern(op.stencil, self.n_verts, self.pinned)
+        self.vertex_mass = np.asarray(mass, dtype=np.float64)
+        self.M_data = np.zeros(self.pattern.nnz)
+        free = self.pattern.free_dof >= 0
+        self.M_data[self.pattern.diagonal] = np.repeat(self.vertex_mass, 3)[free]
+        self.M = self.pattern.matrix(self.M_data)
+        self.timings = {}
+
+    def _law(self, x, want_hessian=False, project=False):
+        F = self.op.deformation_gradients(x)
+        return stvk_volume(F, self.mu, self.lam, self.kv, want_hessian, project)
+
+    def energy(self, x):
+        psi, _, _ = self._law(x)
+        return float(self.V @ psi)
+
+    def forces(self, x):
+        psi, P, _ = self._law(x)
+        fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
+        return float(self.V @ psi), assemble_vector(self.op.stencil, fe, self.n_verts)
+
+    def tangent(self, x, project=False, out=None):
+        t0 = time.perf_counter()
+        psi, P, H = self._law(x, want_hessian=True, project=project)
+        fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
+        Ke = stencil_stiffness(self.op.c, H, self.V)
+        t1 = time.perf_counter()
+        f = assemble_vector(self.op.stencil, fe, self.n_verts)
+        K = assemble_matrix(self.pattern, Ke, out)
+        t2 = time.perf_counter()
+        self.timings = {"element_ms": 1e3 * (t1 - t0), "scatter_ms": 1e3 * (t2 - t1)}
+        return float(self.V @ psi), f, K

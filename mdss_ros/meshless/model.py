@@ -1,0 +1,83 @@
+"""MeshlessModel (`model.kind: meshless`): [HZ]'s MLS meshless model with nodal integration
+(docs/method.md §19).
+
+Nodes are the body's tet-mesh vertices X (n, 3); the tets serve only to find the mesh
+volume (and the guard's inversion count), the surface output is the surface vertices,
+which are nodes. Per node i:
+
+    rbar_i, h_i                   neighbourhoods.py (k nearest, support radius)
+    V_i = s rbar_i^3,  s = V_mesh / sum_j rbar_j^3         support volumes ([HZ] eq. 2)
+    m_i = rho V_i                 so sum m_i = rho V_mesh exactly
+    F_i, E = sum_i V_i psi(F_i)   mls.py, forces.py
+
+State x, v (n, 3). Time integration:
+    implicit (default): backward Euler with Newton on the analytic stiffness, the same
+        integrator, settings (model.integrator.*), Rayleigh damping and contact as the
+        full-space model (fem/backward_euler.py, §4, §14);
+    rk4: explicit RK4 with sub-steps (explicit.py).
+Pins: fixed nodes (their DOFs are removed from the unknowns, they stay neighbours).
+"""
+from ..fem.backward_euler import BackwardEuler, NewtonSettings
+from ..fem.full_model import VertexState
+from ..mesh.tetmesh import signed_volumes
+from .explicit import RK4, auto_substeps, max_frequency
+from .forces import MeshlessForces
+from .mls import gradient_operator
+from .neighbourhoods import find_neighbourhoods
+
+DEFAULTS = {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1, "integrator": "implicit",
+            "substeps": "auto"}
+
+
+class MeshlessModel(VertexState):
+    """State x, v (n_verts, 3); step(f_ext, gravity, contact) advances by dt.
+
+    settings: the scene's model.meshless mapping (DEFAULTS for missing keys);
+    volume_stiffness is k_v in units of the material's mu."""
+
+    kind = "meshless"
+
+    def __init__(self, body, dt, integrator, damping, settings=None, solver="auto"):
+        self.body = body
+        cfg = dict(DEFAULTS, **(settings or {}))
+        self.settings = cfg
+        X = body.vertices
+        nb = find_neighbourhoods(X, cfg["neighbours"], cfg["support_scale"])
+        self.neighbourhoods = nb
+        self.op = gradient_operator(X, nb.nbr, nb.h)
+        self.mesh_volume = float(signed_volumes(X, body.tets).sum())
+        r3 = nb.rbar ** 3
+        V = r3 * (self.mesh_volume / r3.sum())
+        mat = body.material
+        mass = mat.density * V
+        kv = float(cfg["volume_stiffness"]) * mat.mu
+        self.force_model = MeshlessForces(X, self.op, V, mass, mat.mu, mat.lam, kv, body.pinned)
+        self.vertex_mass = self.force_model.vertex_mass
+        newton = NewtonSettings(max_iterations=integrator["newton_iterations"], tolerance=integrator["tolerance"],
+                                line_search=integrator["line_search"], projection=integrator["projection"],
+                                alpha=damping["alpha"], beta=damping["beta"])
+        self.omega_max = None
+        if cfg["integrator"] == "rk4":
+            n_sub = cfg["substeps"]
+            if n_sub == "auto":
+                self.omega_max = max_frequency(self.force_model)
+                n_sub = auto_substeps(dt, self.omega_max, damping["alpha"], damping["beta"])
+            self.integrator = RK4(self.force_model, dt, n_sub, newton, solver)
+        else:
+            self.integrator = BackwardEuler(self.force_model, dt, newton, solver)
+        self.reset()
+
+    def kinetic_energy(self):
+        return 0.5 * float((self.vertex_mass * (self.v * self.v).sum(1)).sum())
+
+    def explain(self):
+        cfg, nb = self.settings, self.neighbourhoods
+        scheme = (f"explicit RK4, {self.integrator.substeps} sub-steps per step"
+                  + (f" (auto: omega_max {self.omega_max:.4g} rad/s)" if self.omega_max else "")
+                  if cfg["integrator"] == "rk4" else
+                  f"backward Euler, {self.integrator.settings.max_iterations} Newton iteration(s)")
+        return [f"meshless model ([HZ] MLS, nodal integration, docs/method.md §19): {len(self.x)} nodes "
+                f"(the mesh vertices), {self.n_dofs} DOFs, {nb.k} neighbours each, support radius "
+                f"{cfg['support_scale']:g} x mean neighbour distance ({nb.h.min():.3g} to {nb.h.max():.3g} m), "
+                f"{self.op.floored} ill-conditioned moment matrices floored; StVK law with k_v = "
+                f"{cfg['volume_stiffness']:g} mu; {scheme}"]

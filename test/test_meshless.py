@@ -1,0 +1,256 @@
+"""The meshless model (`model.kind: meshless`, mdss_ros/meshless, docs/method.md §19).
+
+Small meshes, each test a few seconds: the kernel, the MLS patch test, forces and
+stiffness as exact derivatives of the discrete energy, momentum, pins, the cantilever
+against its closed form, and the Simulator API with contact and both integrators.
+"""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator
+from mdss_ros.body import build_body
+from mdss_ros.errors import SceneError
+from mdss_ros.linear_solver import SparseSolver
+from mdss_ros.mesh import box
+from mdss_ros.meshless.forces import MeshlessForces
+from mdss_ros.meshless.mls import gradient_operator, kernel, kernel_derivative
+from mdss_ros.meshless.neighbourhoods import find_neighbourhoods
+from mdss_ros.model_build import build_model
+from mdss_ros.scene import load_scene
+from mdss_ros.verify.closed_forms import cantilever_gravity_sag
+
+SIZE = np.array([0.3, 0.2, 0.2])
+
+
+def _cloud(cell=0.05, perturb=0.15, seed=0):
+    """Box mesh vertices with interior nodes moved by up to perturb * cell (irregular cloud)."""
+    X = box(SIZE, cell).vertices.copy()
+    inner = np.all((X > 1e-9) & (X < SIZE - 1e-9), axis=1)
+    X[inner] += perturb * cell * np.random.default_rng(seed).uniform(-1, 1, (inner.sum(), 3))
+    return X, inner
+
+
+def _forces(X, kv=0.3, pinned=()):
+    nb = find_neighbourhoods(X, 16, 2.0)
+    op = gradient_operator(X, nb.nbr, nb.h)
+    V = nb.rbar ** 3
+    V *= SIZE.prod() / V.sum()
+    return MeshlessForces(X, op, V, 1000.0 * V, mu=3.8e5, lam=5.8e5, kv=kv * 3.8e5, pinned=pinned)
+
+
+def _deformed(X, seed=1, amp=0.02):
+    """A smooth large deformation (bend, twist, stretch) plus small noise."""
+    rng = np.random.default_rng(seed)
+    x = X.copy()
+    x[:, 2] += 0.3 * X[:, 0] ** 2
+    x[:, 1] += 0.2 * X[:, 0] * X[:, 2]
+    x[:, 0] *= 1.1
+    return x + amp * 0.05 * rng.standard_normal(X.shape)
+
+
+def test_kernel_and_its_derivative():
+    r = np.linspace(0.0, 1.3, 131)
+    w, dw = kernel(r), kernel_derivative(r)
+    assert w[0] == 1.0 and dw[0] == 0.0
+    assert np.all(w[r >= 1.0] == 0.0) and np.all(dw[r >= 1.0] == 0.0)
+    assert abs(kernel(1.0 - 1e-9)) < 1e-15 and abs(kernel_derivative(1.0 - 1e-9)) < 1e-8     # C1 at r = 1
+    assert np.all(np.diff(w[r <= 1.0]) < 0)                                                 # decreasing
+    h = 1e-6
+    inside = r[(r > 0.01) & (r < 0.99)]
+    fd = (kernel(inside + h) - kernel(inside - h)) / (2 * h)
+    assert np.abs(fd - kernel_derivative(inside)).max() < 1e-8
+
+
+def test_mls_gradient_is_exact_for_a_linear_field():
+    """Patch test, gradient part: u = G X + t gives grad u_i = G at every node (boundary
+    nodes included) on an irregular cloud, and the net internal force is zero."""
+    X, _ = _cloud()
+    fm = _forces(X)
+    G = np.random.default_rng(2).normal(size=(3, 3)) * 1e-3
+    u = X @ G.T + np.array([0.1, -0.2, 0.3])
+    assert np.abs(fm.op.gradients(u) - G).max() < 1e-12
+    assert fm.op.floored == 0 and fm.op.cond.max() < 1e3
+    _, f = fm.forces(X + u)
+    assert np.abs(f.sum(0)).max() < 1e-9 * np.abs(f).max()
+
+
+@pytest.mark.xfail(strict=True, reason="nodal integration of MLS gradients does not satisfy the integration "
+                                       "constraint sum_i V_i c_ia = 0 at interior nodes (docs/method.md §19.6): "
+                                       "a uniform stress leaves interior force imbalance (measured 1.2 "
+                                       "x stress x cell area); stabilised nodal integration is not built")
+def test_linear_field_leaves_no_interior_force_imbalance():
+    X, inner = _cloud()
+    fm = _forces(X, kv=0.0)
+    G = np.random.default_rng(2).normal(size=(3, 3)) * 1e-3
+    _, f = fm.forces(X + X @ G.T)
+    scale = np.linalg.norm(G) * 3.8e5 * 0.05 ** 2
+    assert np.abs(f[inner]).max() < 1e-6 * scale
+
+
+def test_forces_are_the_gradient_of_the_energy():
+    """f_int = dE/dx (§1 sign convention: the elastic force on the nodes is -f_int),
+    against central differences of E, with the volume term on and a large deformation."""
+    X, _ = _cloud(perturb=0.1)
+    fm = _forces(X, kv=0.5)
+    x = _deformed(X)
+    E, f = fm.forces(x)
+    assert E > 0 and np.isclose(E, fm.energy(x))
+    rng = np.random.default_rng(3)
+    h = 1e-7
+    for _ in range(5):
+        d = rng.standard_normal(x.shape)
+        fd = (fm.energy(x + h * d) - fm.energy(x - h * d)) / (2 * h)
+        assert abs(fd - (f * d).sum()) < 1e-6 * np.abs(f).sum() * np.abs(d).max(), (fd, (f * d).sum())
+
+
+def test_stiffness_matches_differences_of_the_forces():
+    X, _ = _cloud(perturb=0.1)
+    pinned = np.flatnonzero(X[:, 0] < 1e-9)
+    fm = _forces(X, kv=0.5, pinned=pinned)
+    x = _deformed(X)
+    x[pinned] = X[pinned]
+    E, f, K_data = fm.tangent(x)
+    K = fm.pattern.matrix(K_data)
+    assert abs(K - K.T).max() < 1e-8 * abs(K).max()
+    rng = np.random.default_rng(4)
+    h = 1e-6
+    for _ in range(3):
+        d = rng.standard_normal(fm.n_free)
+        dx = fm.expand(d)
+        fd = (fm.free(fm.forces(x + h * dx)[1]) - fm.free(fm.forces(x - h * dx)[1])) / (2 * h)
+        assert np.linalg.norm(fd - K @ d) < 1e-6 * np.linalg.norm(K @ d)
+    # The projected stiffness is positive semi-definite.
+    Kp = fm.pattern.matrix(fm.tangent(x, project=True)[2]).toarray()
+    assert np.linalg.eigvalsh(0.5 * (Kp + Kp.T)).min() > -1e-8 * np.abs(Kp).max()
+
+
+def _scene(kind="meshless", pins=True, colliders=None, gravity=(0, 0, -9.81), **meshless):
+    return {"name": "m",
+            "body": {"mesh": {"generator": "box", "size": [0.3, 0.1, 0.1], "cell": 0.05},
+                     "material": {"model": "stvk", "young": 1e6, "poisson": 0.3, "density": 1000}},
+            "pins": [{"box": [[-1e-3, -1, -1], [1e-3, 1, 1]]}] if pins else [],
+            "colliders": colliders or {},
+            "gravity": list(gravity),
+            "model": {"kind": kind, "integrator": {"dt": 0.01}, "meshless": meshless}}
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "rk4"])
+def test_free_body_keeps_linear_momentum(integrator):
+    """No pins, no gravity, a deformed body with a random velocity: internal forces sum to
+    zero, so m v is kept to round-off (relative 1e-10) by both integrators."""
+    sim = Simulator(_scene(pins=False, gravity=(0, 0, 0), integrator=integrator))
+    m = sim.model
+    rng = np.random.default_rng(5)
+    m.set_state(_deformed(m.body.vertices, amp=0.1), rng.standard_normal(m.x.shape))
+    p0 = (m.vertex_mass[:, None] * m.v).sum(0)
+    sim.step(5)
+    p1 = (m.vertex_mass[:, None] * m.v).sum(0)
+    scale = (m.vertex_mass[:, None] * np.abs(m.v)).sum()
+    assert np.abs(p1 - p0).max() < 1e-10 * scale, (p0, p1)
+    assert sim.stats()["stability"] in ("stable", "recovered")
+
+
+def test_pins_hold_exactly():
+    """Pinned nodes are removed from the unknowns: after steps under gravity they sit at
+    their rest positions bit for bit (tolerance 0) with zero velocity."""
+    sim = Simulator(_scene())
+    sim.step(10)
+    pinned = sim.model.body.pinned
+    assert pinned.size == 9
+    assert np.array_equal(sim.vertex_positions()[pinned], sim.model.body.vertices[pinned])
+    assert not sim.model.v[pinned].any()
+
+
+def _static_sag(L, cell, E):
+    scene = load_scene({"name": "beam",
+                        "body": {"mesh": {"generator": "box", "size": [L, 0.1, 0.1], "cell": cell},
+                                 "material": {"model": "stvk", "young": E, "poisson": 0.3, "density": 1000}},
+                        "pins": [{"box": [[-1e-3, -1, -1], [1e-3, 1, 1]]}],
+                        "model": {"kind": "meshless"}})
+    body = build_body(scene)
+    fm = build_model(scene, body).force_model
+    f_ext = fm.vertex_mass[:, None] * np.array([0.0, 0.0, -9.81])
+    x = body.vertices.copy()
+    solver = SparseSolver()
+    for _ in range(10):                        # Newton on f_int(x) = f_ext
+        _, f, K_data = fm.tangent(x)
+        r = fm.free(f_ext - f)
+        if np.linalg.norm(r) < 1e-10 * np.linalg.norm(fm.free(f_ext)):
+            break
+        solver.factor(fm.pattern.matrix(K_data))
+        x = x + fm.expand(solver.solve(r))
+    tip = np.abs(body.vertices[:, 0] - L) < 1e-9
+    return len(body.vertices), -(x[tip, 2] - body.vertices[tip, 2]).mean()
+
+
+def test_cantilever_static_sag_against_the_closed_form():
+    """0.5 x 0.1 x 0.1 m beam, cell 0.025 (525 nodes), E = 1e8 Pa (small strain), the
+    defaults (16 neighbours, support 2 x mean distance, k_v = 0.1 mu). The static tip sag
+    under self weight against Euler-Bernoulli + Timoshenko shear (§16.1): measured -17.5 %
+    (too stiff; -3.3 % at 99 nodes, -9.9 % at 3321 nodes: no monotone convergence, the
+    nodal-integration error of §19.6). The tolerance is that measurement's, not a target."""
+    n, sag = _static_sag(0.5, 0.025, 1e8)
+    ref = cantilever_gravity_sag(1000, 9.81, 0.5, 1e8, 0.1, 0.1, nu=0.3)
+    err = sag / ref - 1.0
+    assert n == 525
+    assert sag > 0                              # sags down, with gravity
+    assert abs(err) < 0.20, err
+
+
+def test_simulator_cantilever_sags_under_gravity():
+    sim = Simulator("cantilever", overrides={"model.kind": "meshless", "body.mesh.cell": 0.05})
+    tip = np.abs(sim.model.body.vertices[:, 0] - 1.0) < 1e-9
+    sim.step(5)
+    dz = sim.vertex_positions()[tip, 2] - sim.model.body.vertices[tip, 2]
+    assert np.all(dz < 0)
+    assert sim.stats()["kind"] == "meshless" and sim.stats()["stability"] == "stable"
+    assert sim.surface_positions().shape == (len(sim.surface_vertex_ids()), 3)
+    e = sim.energy()
+    assert e["elastic"] > 0 and e["kinetic"] > 0
+
+
+@pytest.mark.parametrize("integrator", ["implicit", "rk4"])
+def test_sphere_pressed_into_a_block_pushes_back(integrator):
+    """A bottom-pinned block pressed 5 mm by a sphere: the same unilateral solve as the FEM
+    model; the reaction on the sphere points up and no contact vertex is left inside it
+    beyond the linearisation error. The sideways reaction is not zero: k-nearest stencils
+    break ties between equidistant grid nodes arbitrarily, so the discrete body is not
+    mirror-symmetric (implicit: measured 0.33 % of the normal force)."""
+    scene = {"name": "block",
+             "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.05,
+                               "origin": [-0.1, -0.1, 0.0]},
+                      "material": {"model": "stvk", "young": 1e5, "poisson": 0.3, "density": 1000},
+                      "damping": {"alpha": 5.0, "beta": 0.0}},
+             "pins": [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}],
+             "colliders": {"ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.2]}},
+             "gravity": [0, 0, 0],
+             "model": {"kind": "meshless", "integrator": {"dt": 0.01, "newton_iterations": 2},
+                       "meshless": {"integrator": integrator}}}
+    sim = Simulator(scene)
+    for k in range(30):
+        sim.set_collider_pose("ball", (0, 0, 0.14 - 0.005 * min(1, (k + 1) / 20)))
+        sim.step()
+    w = sim.collider_wrench("ball")
+    assert w[2] > 0 and abs(w[0]) < 0.01 * w[2] and abs(w[1]) < 0.01 * w[2], w
+    c = sim.contacts()
+    assert len(c) > 0 and c[:, 6].max() < 1e-3
+    assert sim.stats()["stability"] in ("stable", "recovered")
+
+
+def test_meshless_scene_keys_are_validated():
+    base = _scene()
+    with pytest.raises(SceneError, match="model.meshless.neighbours"):
+        load_scene(base, {"model.meshless.neighbours": 2})
+    with pytest.raises(SceneError, match="model.meshless.integrator"):
+        load_scene(base, {"model.meshless.integrator": "euler"})
+    with pytest.raises(SceneError, match="model.meshless.substeps"):
+        load_scene(base, {"model.meshless.substeps": 0})
+    with pytest.raises(SceneError, match="model.meshless.support_scale"):
+        load_scene(base, {"model.meshless.support_scale": -1})
+    with pytest.raises(SceneError, match="unknown key model.meshless.kernel"):
+        load_scene(base, {"model.meshless.kernel": "cubic"})
+    s = load_scene(base)
+    assert s["model"]["meshless"] == {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1,
+                                      "integrator": "implicit", "substeps": "auto"}
+    with pytest.raises(SceneError, match="support_scale"):      # too small a support: caught at build
+        Simulator(_scene(support_scale=0.5))
