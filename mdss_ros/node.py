@@ -16,8 +16,9 @@ mdss_ros.ros.convert), and decides *when*:
 - Clock modes (parameter clock_mode, read-only). In `follow` and `lockstep` the node
   creates no step timer, ignores real_time_factor and publishes no /clock (an MCAP
   recording still gets a /clock record of the sim time every step, so `mdss replay`
-  works unchanged); it subscribes to /clock (rosgraph_msgs/Clock, BEST_EFFORT, depth
-  100: it matches reliable and best-effort masters alike, e.g. rclcpp's ClockQoS).
+  works unchanged); it subscribes to /clock (rosgraph_msgs/Clock, depth 100): BEST_EFFORT in
+  follow (it matches reliable and best-effort masters alike, e.g. rclcpp's ClockQoS), and
+  RELIABLE in lockstep, where a lost tick would be a lost step (it needs a reliable master).
   Sim time still starts at 0 and is step_count * physics_dt.
   - `follow`: after each tick of master time T the node takes, one step per executor
     cycle (inputs arriving in between are taken first, as in source mode), every step
@@ -297,6 +298,12 @@ class MdssNode(Node):
                  f"dt = {scene.dt:.6g} s. {precompute_notice(scene)}")
         t0 = time.perf_counter()
         self.sim = build_simulator(scene, progress=lambda msg: log.info(f"precompute: {msg}"))
+        for name, info in self.sim.colliders_inside_at_load.items():      # also a Python warning
+            log.warn(f"collider {name!r} starts inside the body (" + (
+                f"{info['vertices']} vertices inside it, {1e3 * info['depth']:.1f} mm deep" if info["vertices"]
+                else "its centre inside the body's volume") + "): the first step pushes the body out of it "
+                "along the shortest way, and it is not swept through the body when posed; /diagnostics "
+                "colliders_inside_at_load lists it")
         st = self.sim.stats()
         self.surface_ids = np.asarray(self.sim.surface_vertex_ids())
         self.triangles = np.asarray(self.sim.surface_triangles())
@@ -325,6 +332,7 @@ class MdssNode(Node):
         self._rejected = dict.fromkeys(validate.KINDS, 0)
         self._warned = {}
         self._counts = dict.fromkeys(("received", "applied", "late"), 0)
+        self._inside_poses, self._inside_last = 0, ""    # collider poses inside the body (applied)
         self._stability, self._failures, self._last_failure = "ok", 0, ""
         self._guard_seen = 0                  # guard recoveries already reported
         self._failing = False
@@ -347,7 +355,10 @@ class MdssNode(Node):
         log.info(f"ready: {'paused' if self._paused else 'running'} {pace}; "
                  f"inputs on {self.resolve_topic_name('~/wrench')}, "
                  f"{self.resolve_topic_name('~/point_forces')}"
-                 + "".join(f", {self._collider_topic(c, 'pose')}" for c in self.colliders))
+                 + "".join(f", {self._collider_topic(c, 'pose')}" for c in self.colliders)
+                 + (f"; domain frames on /tf as {self._topics.tf_prefix}<domain>" if self.pub_tf is not None else
+                    "; no tf2_msgs in this venv, so domain frames go to ~/domain_transforms only "
+                    "(bash launch_scripts/build_tf2_msgs.sh adds /tf)"))
 
     # ------------------------------------------------------------------ parameters
     def _declare(self, name, default=None):
@@ -490,6 +501,17 @@ class MdssNode(Node):
         self.pub_clock = (self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
                           if self._master is None else None)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", _qos(10))
+        # /tf (tf2_msgs/TFMessage, child frames <node name>/<domain name>) as RViz and
+        # Foxglove expect it. The pip ROS wheels have no tf2_msgs: launch_scripts/
+        # build_tf2_msgs.sh builds it into the venv (the bootstrap runs it); without it the
+        # frames go out on ~/domain_transforms only (and into a recording's /tf).
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            self._tf_type, self.pub_tf = None, None
+        else:
+            self._tf_type = TFMessage
+            self.pub_tf = self.create_publisher(TFMessage, "/tf", _qos(100))
 
         self.create_subscription(WrenchStamped, "~/wrench", self._on_wrench, _qos(50))
         self.create_subscription(PointCloud2, "~/point_forces", self._on_point_forces, _qos(50))
@@ -514,12 +536,18 @@ class MdssNode(Node):
             if self._paused:
                 self._step_timer.cancel()
         else:
-            # Ticks trigger the same guard condition. BEST_EFFORT matches any master
-            # (rclcpp's ClockQoS is best effort); depth 100 queues ticks during a step.
+            # Ticks trigger the same guard condition; depth 100 queues ticks during a step.
+            # follow: BEST_EFFORT matches any master (rclcpp's ClockQoS is best effort), and
+            # a lost tick costs nothing, the next one carries the time. lockstep: one step
+            # per tick, so a lost tick is a lost step: RELIABLE, which needs a reliable master
+            # (a best-effort one would not match; measured: 1 of 3 two-body runs lost ticks
+            # to a best-effort subscription on this loaded 2-core machine).
             self._step_timer = None
+            lossless = self._master.mode == "lockstep"
             self.create_subscription(ClockMsg, "/clock", self._on_clock,
                                      QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                                                reliability=ReliabilityPolicy.BEST_EFFORT,
+                                                reliability=ReliabilityPolicy.RELIABLE if lossless
+                                                else ReliabilityPolicy.BEST_EFFORT,
                                                 durability=DurabilityPolicy.VOLATILE))
         self._diag_timer = self.create_timer(1.0 / self._p("diagnostics_rate"), self._on_diag_timer, clock=steady)
 
@@ -741,8 +769,11 @@ class MdssNode(Node):
             transforms = convert.domain_transforms(t, frame, self.domain_names, poses)
             for msg in transforms:
                 self._publish(self.pub_transforms, tp.domain_transforms, msg)
+            tf = convert.domain_transforms(t, frame, self.domain_names, poses, prefix=tp.tf_prefix)
+            if self.pub_tf is not None:
+                self.pub_tf.publish(self._tf_type(transforms=tf))
             if self._recorder is not None:
-                self._recorder.write_tf(transforms, self._log_time())
+                self._recorder.write_tf(tf, self._log_time())
             for c, w in wrenches.items():
                 self._publish(self.pub_collider_wrench[c], tp.collider_wrench(c), convert.wrench_stamped(t, frame, w))
         contacts_of = getattr(self.sim, "contacts", None)
@@ -847,9 +878,30 @@ class MdssNode(Node):
                          f"{pub.msg_type.__module__.split('.')[0]}/msg/{pub.msg_type.__name__}")
 
     def _apply_collider_pose(self, name, pos, quat):
-        self.sim.set_collider_pose(name, pos, quat)
+        inside = self.sim.set_collider_pose(name, pos, quat)
+        if inside:
+            self._collider_inside(name, inside)
         if self._rerun is not None:
             self._rerun.collider_pose(name, pos, quat)
+
+    def _collider_inside(self, name, info):
+        """A pose that puts a collider inside the body (Simulator.set_collider_pose): applied,
+        counted (/diagnostics collider_poses_inside) and warned about at most once per
+        WARN_PERIOD_S, like rejected inputs."""
+        self._inside_poses += 1
+        self._inside_last = f"{name}: {1e3 * info['depth']:.1f} mm, {info['vertices']} vertices"
+        now = time.monotonic()
+        last, suppressed = self._warned.get("collider_inside", (-math.inf, 0))
+        if now - last >= WARN_PERIOD_S:
+            more = f" (and {suppressed} more such poses since the last warning)" if suppressed else ""
+            self.get_logger().warn(
+                f"~/colliders/{name}/pose puts the collider {1e3 * info['depth']:.1f} mm inside the body "
+                f"({info['vertices']} surface vertices inside it, deepest vertex {info['vertex']}); applied: it is "
+                f"swept there if it starts the step outside the body, else moved straight there, and the "
+                f"contact pushes the body out along the shortest way{more}")
+            self._warned["collider_inside"] = (now, 0)
+        else:
+            self._warned["collider_inside"] = (last, suppressed + 1)
 
     def _log_rerun(self, step_ms):
         try:
@@ -991,6 +1043,8 @@ class MdssNode(Node):
             "rejected_total": sum(self._rejected.values()),
         }
         values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
+        values.update({"collider_poses_inside": self._inside_poses, "collider_inside_last": self._inside_last,
+                       "colliders_inside_at_load": ",".join(sorted(self.sim.colliders_inside_at_load))})
         clock, lag = self._master, 0.0
         if clock is not None:
             values.update({"clock_master_time": clock.master, "clock_ticks": clock.ticks,
@@ -1010,7 +1064,7 @@ class MdssNode(Node):
             level, message = "warn", f"behind the master /clock by {lag:.3g} s"
         else:
             level, message = "ok", values["state"]
-        return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME.format(node=self.get_name()),
+        return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME.format(node=self._topics.node_name),
                                    f"scene:{self.sim.scene.name}",
                                    level, message, values)
 

@@ -107,9 +107,16 @@ def submesh_around(tets, vertices_of_domain, n_verts, layers=1, max_growth=3.0):
     has max_growth times the domain's vertices), and the tets inside.
 
     Returns (sub_vertices (k,) global ids, sub_tets (m, 4) local ids, keep (n_i,) local
-    ids of the domain's own vertices). Modes computed on the grown region and then
-    restricted to the domain see an attached boundary rather than a free one: free-free
-    modes of a segment have no curvature at its ends, yet the interface carries moment.
+    ids of the domain's own vertices, -1 for a vertex left out). Modes computed on the
+    grown region and then restricted to the domain see an attached boundary rather than a
+    free one: free-free modes of a segment have no curvature at its ends, yet the
+    interface carries moment.
+
+    The region is one piece joined through faces: the piece holding most of the domain's
+    vertices. Tets that join it only along an edge or at a vertex would hang on a hinge,
+    and the region's stiffness would have a zero-energy mode besides the rigid ones
+    (seen on a coarse armadillo and on users' meshes with thin parts). A domain vertex
+    outside that piece gets no modal rows: it moves with the domain's frame.
     """
     in_dom = np.zeros(n_verts, dtype=bool)
     in_dom[vertices_of_domain] = True
@@ -122,10 +129,32 @@ def submesh_around(tets, vertices_of_domain, n_verts, layers=1, max_growth=3.0):
     # an edge would hang on a hinge and give the stiffness a zero-energy mode.
     touching = in_dom[tets].all(axis=1)
     sub_t = tets[touching]
+    sub_t = _main_face_piece(sub_t, vertices_of_domain, n_verts)
     sub_v = np.unique(sub_t)
     local = np.full(n_verts, -1, dtype=np.int64)
     local[sub_v] = np.arange(len(sub_v))
     return sub_v, local[sub_t], local[vertices_of_domain]
+
+
+def _main_face_piece(tets, vertices_of_domain, n_verts):
+    """The tets (m, 4) of the face-connected piece holding the most domain vertices."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from .partition import tet_face_pairs
+    if len(tets) < 2:
+        return tets
+    pairs = tet_face_pairs(tets)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(tets), len(tets)))
+    n, piece = connected_components(g, directed=False)
+    if n == 1:
+        return tets
+    is_dom = np.zeros(n_verts, dtype=bool)
+    is_dom[vertices_of_domain] = True
+    # distinct domain vertices per piece: unique (piece, vertex) pairs, counted per piece
+    pv = np.unique(np.stack([np.repeat(piece, 4), tets.ravel()], axis=1), axis=0)
+    score = np.bincount(pv[:, 0], weights=is_dom[pv[:, 1]], minlength=n)
+    return tets[piece == int(np.argmax(score))]
 
 
 def layers_for_extension(X, tets, verts, extension):
@@ -164,16 +193,24 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
                                         float(basis_opts.pop("max_growth", 3.0)))
     sub_local = np.full(len(X), -1, dtype=np.int64)
     sub_local[sub_v] = np.arange(len(sub_v))
+    present = keep >= 0                   # domain vertices in the region's main piece
+    fixed_sub = sub_local[verts[fixed_local]]
+    fixed_sub = fixed_sub[fixed_sub >= 0]
     if complete:    # every free DOF: the reduced model is an exact change of basis (tests)
         basis = complete_basis(X[sub_v], sub_t, body.material, vertex_mass[sub_v],
-                               fixed=sub_local[verts[fixed_local]], keep=keep)
+                               fixed=fixed_sub, keep=keep[present])
     else:
         basis = modal_basis(X[sub_v], sub_t, body.material, vertex_mass[sub_v], r,
-                            fixed=sub_local[verts[fixed_local]], keep=keep, **basis_opts)
+                            fixed=fixed_sub, keep=keep[present], **basis_opts)
+    U = basis.U
+    if not present.all():                 # hinged-off vertices: no modal rows (zero), see submesh_around
+        U = np.zeros((3 * len(verts), basis.U.shape[1]))
+        U[np.repeat(present, 3)] = basis.U
     return SubspaceDomain(index=index, name=name, vertices=verts, cbar=cbar, r_local=X[verts] - cbar,
-                          mass=m, U=basis.U, movable=fixed_local.size == 0, forces=forces,
+                          mass=m, U=U, movable=fixed_local.size == 0, forces=forces,
                           basis_info={"n_linear": int(basis.n_linear), "n_derivatives": int(basis.n_derivatives),
                                       "layers": layers, "region_vertices": int(len(sub_v)),
+                                      "hinged_vertices": int((~present).sum()),
                                       "eigenvalues": [float(v) for v in basis.eigenvalues],
                                       "seconds": time.perf_counter() - t0, "cached": False})
 
