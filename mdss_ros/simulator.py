@@ -63,9 +63,40 @@ class Simulator:
         # Poses at the start of the coming step, for sweeping fast colliders.
         self._collider_start = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
 
+    def _check_colliders_at_load(self):
+        """Colliders whose scene pose is inside the body at rest (docs/method.md §14, "A collider
+        inside the body"): a ColliderInsideWarning each, kept in self.colliders_inside_at_load
+        {name: {"depth" m, "vertices", "vertex", "core_inside", "suggested" (3,) or None}}."""
+        import warnings
+        from .contact.colliders import ColliderInsideWarning, clear_position, inside_body
+        x = self.body.vertices
+        tol = 1e-6 * float(np.linalg.norm(np.ptp(x, axis=0)))          # round-off of a touching pose
+        surf = self.body.surface
+        self.colliders_inside_at_load = {}
+        for name, c in self.colliders.items():
+            depth, count, k = c.penetration(x, tol)                     # every vertex, vectorised
+            core = inside_body(c, x[surf.vertex_ids], surf.triangles)
+            if not count and not core:
+                continue
+            margin = self._contact_spec()["margin"]
+            suggested = clear_position(c, x[surf.vertex_ids], 0.5 * margin)
+            self.colliders_inside_at_load[name] = {"depth": depth, "vertices": count, "vertex": k,
+                                                   "core_inside": core, "suggested": suggested}
+            where = (f"{count} vertex{'es' if count != 1 else ''} inside it, the deepest {1e3 * depth:.1f} mm deep "
+                     f"(vertex {k} at {np.round(x[k], 4).tolist()})" if count else
+                     "no vertex inside it, but its centre is inside the body's volume")
+            hint = (f"; if that is not intended, give it a position clear of the body, e.g. "
+                    f"position: {np.round(suggested, 4).tolist()}" if suggested is not None else "")
+            warnings.warn(f"{self.scene.source}: collider {name!r} ({c.shape}) starts inside the body: {where}. "
+                          f"The first step's contact pushes the body out of it along the shortest way (its "
+                          f"outward normal), and while it is inside the body it is not swept when posed: it "
+                          f"moves straight to each new pose{hint}", ColliderInsideWarning, stacklevel=3)
+
     def reset(self):
         """Back to the rest state at t = 0 with no inputs; colliders at their scene poses."""
         self._make_colliders()
+        self._check_colliders_at_load()
+        self.colliders_inside = {n: dict(v) for n, v in self.colliders_inside_at_load.items()}
         self.model.reset()
         iv = self.scene["initial_velocity"]
         if any(iv["linear"]) or any(iv["angular"]):
@@ -117,10 +148,48 @@ class Simulator:
         self._point_forces.clear()
 
     def set_collider_pose(self, name, position, orientation=(0.0, 0.0, 0.0, 1.0)):
-        """Pose a kinematic collider (world frame; orientation x y z w, normalised here)."""
+        """Pose a kinematic collider (world frame; orientation x y z w, normalised here).
+
+        Returns None, or when the new pose puts the collider deeper than inside_depth into the
+        body's current surface {"depth" m, "vertices" (how many), "vertex" (the deepest's id)}:
+        the node counts these. Such a collider is swept to the pose in sub-steps if it starts
+        the step outside the body, and moved straight there if it starts inside (§14)."""
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
-        self.colliders[name].set_pose(_finite3(position, "position"), orientation)
+        c = self.colliders[name]
+        c.set_pose(_finite3(position, "position"), orientation)
+        # Deeper than the sweep's per-step travel into the current surface: reported (the
+        # node counts it); a slow press of a few tenths of a millimetre is ordinary contact.
+        depth, count, k = c.penetration(self.surface_positions(), self.inside_depth)
+        if not count:
+            self.colliders_inside.pop(name, None)
+            return None
+        info = {"depth": depth, "vertices": count, "vertex": int(self.body.surface.vertex_ids[k])}
+        self.colliders_inside[name] = info
+        return info
+
+    @property
+    def inside_depth(self):
+        """Depth (m) beyond which a collider counts as posed inside the body at a pose update
+        or a step's start: the sweep's largest travel per sub-step (half a mean surface edge)."""
+        return self.MAX_COLLIDER_TRAVEL * self._contact_spec()["margin"]
+
+    def _embedded_colliders(self):
+        """Colliders about to be swept this step (moved more than inside_depth since their last
+        step) whose start pose is inside the body: a surface vertex deeper than inside_depth
+        in it, or its centre inside the surface. They are not swept (docs/method.md §14)."""
+        from .contact.colliders import inside_body
+        out, surface = [], None
+        for name, c in self.colliders.items():
+            p0, q0 = self._collider_start.get(name, (c.position, c.orientation))
+            if float(np.linalg.norm(c.position - p0)) <= self.inside_depth:
+                continue
+            surface = self.surface_positions() if surface is None else surface
+            start = c.at(p0, q0)
+            if start.penetration(surface, self.inside_depth)[1] or \
+                    inside_body(start, surface, self.body.surface.triangles):
+                out.append(name)
+        return out
 
     def external_forces(self):
         """Per-vertex external force (n_verts, 3) for the coming step, gravity included."""
@@ -160,6 +229,11 @@ class Simulator:
         # Collider poses set for the end of this step; guard sub-steps interpolate towards them.
         self._collider_targets = {name: (c.position.copy(), c.orientation.copy())
                                   for name, c in self.colliders.items()}
+        embedded = self._embedded_colliders() if self.colliders else []
+        for name in embedded:
+            # Inside the body at the step's start: no sweep through it, straight to the target
+            # (the contact then pushes the body out of it along the shortest way).
+            self._collider_start[name] = self._collider_targets[name]
         self._collider_step_start = dict(self._collider_start)
         model_stats, report = self.guard.step(lambda k, n_sub: self._advance(f_app, k, n_sub),
                                               self._save, self._restore, f_app, self.gravity,
@@ -170,6 +244,8 @@ class Simulator:
         # A zero-duration force lasts exactly the step it was applied in.
         self._point_forces = [p for p in self._point_forces if p[3] is None or p[3] > self.time + 1e-12]
         self._stats = dict(model_stats, **report, loads_ms=1e3 * (t1 - t0), step_ms=1e3 * (t2 - t0))
+        if embedded:
+            self._stats["colliders_not_swept"] = embedded
 
     def _advance(self, f_app, k, n_sub):
         """Sub-step k (1..n_sub) of a step; the model's dt is already dt / n_sub. Colliders
@@ -321,6 +397,14 @@ class Simulator:
             lines.append(f"contact: built only for the declared colliders: {shapes}; candidates are surface "
                          f"vertices within {self._contact_spec()['margin']:.3g} m (a mean surface edge)"
                          + (f"; {', '.join(faces)} also test surface faces" if faces else ""))
+            for n, info in self.colliders_inside_at_load.items():
+                lines.append(f"collider {n!r} starts inside the body: " + (
+                    f"{info['vertices']} vertices inside it, the deepest {1e3 * info['depth']:.1f} mm"
+                    if info["vertices"] else "its centre is inside the body's volume")
+                    + "; the first step pushes the body out of it along the shortest way, and it is not "
+                      "swept through the body when posed" + (
+                    f" (a clear position: {np.round(info['suggested'], 4).tolist()})"
+                    if info["suggested"] is not None else ""))
             reach = [n for n, spec in sc["colliders"].items() if isinstance(spec, dict) and spec.get("reach")]
             if reach:
                 lines.append(f"collider reach: {', '.join(f'{n}_reach' for n in reach)} simulated in full space "

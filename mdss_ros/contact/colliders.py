@@ -22,7 +22,14 @@ contact patch can switch its active faces from one static step to the next).
 `signed_distance(points)` returns phi (n,) (negative inside the collider) and the unit
 outward normal of the collider at the closest surface point (n, 3), both in the world
 frame; phi is differentiable with d phi / d x = normal away from the medial set.
+
+A collider can be posed inside the body (a forgotten `position` leaves it at the origin).
+`Collider.penetration` measures that from the vertices inside it, `inside_body` tells
+whether the collider's own centre (or capsule axis) lies in the body's volume; the
+Simulator warns about the first, and does not sweep a collider that either finds inside
+the body (docs/method.md §14, "A collider inside the body").
 """
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +65,35 @@ class Collider:
     @property
     def rotation(self):
         return matrix_from_quat(self.orientation)
+
+    def at(self, position, orientation):
+        """A copy of this collider at another pose (for checks at a start or trial pose)."""
+        return dataclasses.replace(self, position=np.asarray(position, dtype=np.float64),
+                                   orientation=np.asarray(orientation, dtype=np.float64))
+
+    def penetration(self, points, tol=0.0):
+        """The points inside this collider, one vectorised signed_distance: (depth, count,
+        index), depth = -min phi (m) over the points with phi < -tol, count how many, index
+        the deepest (into points); (0.0, 0, -1) when none."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(points) == 0:
+            return 0.0, 0, -1
+        phi = self.signed_distance(points)[0]
+        inside = phi < -tol
+        if not inside.any():
+            return 0.0, 0, -1
+        k = int(np.argmin(phi))
+        return float(-phi[k]), int(inside.sum()), k
+
+    def core_points(self):
+        """Points (k, 3) of this collider's solid that lie deepest in it: a sphere's or box's
+        centre, a capsule's axis ends and middle; none for a plane (a half-space)."""
+        if self.shape in ("sphere", "box"):
+            return self.position[None, :].copy()
+        if self.shape == "capsule":
+            half = self.half_height * self.rotation[:, 2]
+            return np.stack([self.position - half, self.position, self.position + half])
+        return np.zeros((0, 3))
 
     def signed_distance(self, points):
         """phi (n,) and outward normals (n, 3) at world points (n, 3)."""
@@ -103,6 +139,60 @@ def _box(p, h):
     rows = np.flatnonzero(inside)
     n[rows, axis] = np.where(p[rows, axis] >= 0.0, 1.0, -1.0)
     return phi, n
+
+
+class ColliderInsideWarning(UserWarning):
+    """A collider's scene pose puts it inside the body (Simulator, at load and reset)."""
+
+
+def winding_numbers(points, positions, triangles):
+    """Generalised winding numbers (k,) of points (k, 3) with respect to the closed surface
+    positions (S, 3), triangles (T, 3): about +-1 inside, 0 outside (Van Oosterom and
+    Strackee's solid angle, summed over the triangles; one pass per point, vectorised over
+    the triangles)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(points))
+    corners = [positions[triangles[:, k]] for k in range(3)]
+    for i, p in enumerate(points):                        # a few points (a collider's core)
+        a, b, c = (q - p for q in corners)
+        la, lb, lc = (np.linalg.norm(q, axis=1) for q in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la
+               + np.einsum("ij,ij->i", c, a) * lb)
+        out[i] = 2.0 * np.arctan2(det, den).sum() / (4.0 * np.pi)
+    return out
+
+
+def inside_body(collider, positions, triangles):
+    """True when the collider's core (core_points: a centre or a capsule's axis) lies inside
+    the closed surface (positions, triangles): the collider overlaps the body's volume even
+    where no vertex is inside it (the body pushed out around it)."""
+    core = collider.core_points()
+    if len(core) == 0 or len(triangles) == 0:
+        return False
+    return bool((np.abs(winding_numbers(core, positions, triangles)) > 0.5).any())
+
+
+def clear_position(collider, points, clearance):
+    """A suggested position for a collider that has points inside it: the shortest shift
+    along the world axes (and, for a plane, against its normal) that leaves every point at
+    least clearance outside it, in steps of a quarter of (depth + clearance). None if no
+    shift within 64 steps clears the points."""
+    depth = collider.penetration(points)[0]
+    step = 0.25 * (depth + clearance) if depth + clearance > 0 else 1e-3
+    dirs = list(np.vstack([np.eye(3), -np.eye(3)]))
+    if collider.shape == "plane":
+        dirs.append(-collider.rotation[:, 2])
+    best = None
+    for u in dirs:
+        for k in range(1, 65):
+            if best is not None and k * step >= best[0]:
+                break
+            p = collider.position + k * step * u
+            if collider.at(p, collider.orientation).signed_distance(points)[0].min() >= clearance:
+                best = (k * step, p)
+                break
+    return None if best is None else best[1]
 
 
 def make_collider(name, spec):
