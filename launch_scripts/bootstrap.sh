@@ -31,7 +31,7 @@ find_python() {
   Install one (Debian/Ubuntu: apt-get install python3.11 python3.11-venv) or set MDSS_PYTHON=/path/to/python3.11"
 }
 
-stamp_of() { cat "$root/requirements.txt" "$root/requirements.lock.txt" "$root/requirements-peers.txt" "$root/setup.py" "$root/launch_scripts/bootstrap.sh" | sha256sum | cut -c1-16; }
+stamp_of() { cat "$root/requirements.txt" "$root/requirements.lock.txt" "$root/requirements-peers.txt" "$root/requirements-tf.txt" "$root/setup.py" "$root/launch_scripts/bootstrap.sh" | sha256sum | cut -c1-16; }
 
 want="$(stamp_of)"
 if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != "$want" ]; then
@@ -47,19 +47,30 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
   : > "$log"
   quiet() { "$@" >>"$log" 2>&1 || { cat "$log" >&2; return 1; }; }
   t0=$SECONDS
-  echo "mdss bootstrap: [1/3] installing pinned requirements (first time: a few minutes; log in $log)" >&2
+  echo "mdss bootstrap: [1/4] installing pinned requirements (first time: a few minutes; log in $log)" >&2
   quiet "$venv/bin/python" -m pip install -q --upgrade pip || die "pip upgrade failed (no access to the Python package index?)"
   quiet "$venv/bin/python" -m pip install -q -r "$root/requirements.txt" -c "$root/requirements.lock.txt" \
     || die "installing requirements.txt failed; see pip's message above"
   quiet "$venv/bin/python" -m pip install -q -r "$root/requirements-peers.txt" -c "$root/requirements.lock.txt" \
     || die "installing requirements-peers.txt (MuJoCo, the peer the reports compare against) failed; see pip's message above"
-  echo "mdss bootstrap: [2/3] installing mdss_ros itself (editable)" >&2
+  echo "mdss bootstrap: [2/4] installing mdss_ros itself (editable)" >&2
   quiet "$venv/bin/python" -m pip install -q --no-deps -e "$root" || die "installing mdss_ros itself failed"
   # numba compiles each kernel on first use; doing it here (cached in the venv) keeps that
   # cost out of the user's first scene, where it looked like a hang (mdss_ros/warmup.py).
-  echo "mdss bootstrap: [3/3] compiling the numba kernels once into $venv/numba_cache (about 30 s on 2 cores)" >&2
+  echo "mdss bootstrap: [3/4] compiling the numba kernels once into $venv/numba_cache (about 30 s on 2 cores)" >&2
   quiet env NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$venv/numba_cache}" "$venv/bin/python" -m mdss_ros.warmup \
     || die "compiling the numba kernels failed; see the message above"
+  # /tf needs tf2_msgs, which no pip wheel has: build it from the rosidl generator wheels
+  # when the machine has a compiler toolchain (launch_scripts/build_tf2_msgs.sh, ~20 s).
+  if command -v cmake >/dev/null 2>&1 && command -v make >/dev/null 2>&1 \
+      && { command -v c++ >/dev/null 2>&1 || command -v g++ >/dev/null 2>&1; }; then
+    echo "mdss bootstrap: [4/4] building tf2_msgs for /tf (about 20 s)" >&2
+    quiet env MDSS_VENV="$venv" bash "$root/launch_scripts/build_tf2_msgs.sh" \
+      || die "building tf2_msgs failed; see the message above"
+  else
+    echo "mdss bootstrap: [4/4] skipped: no cmake, make and g++ here, so the node publishes domain frames on" \
+         "~/domain_transforms only (apt-get install cmake g++ make, then run again, for /tf)" >&2
+  fi
   echo "mdss bootstrap: ready in $((SECONDS - t0)) s" >&2
   echo "$want" > "$venv/.mdss_stamp"
 fi

@@ -101,7 +101,7 @@ def test_rosbags_reads_every_topic_with_counts_and_values(recorded):
             elif conn.topic == "/tf":
                 stamp = msg.transforms[0].header.stamp
                 poses = by_time[stamp.sec * 10**9 + stamp.nanosec]["poses"]
-                assert [t.child_frame_id for t in msg.transforms] == ["domain_0", "domain_1"]
+                assert [t.child_frame_id for t in msg.transforms] == ["mdss/domain_0", "mdss/domain_1"]   # /tf: <node name>/<domain>
                 assert {t.header.frame_id for t in msg.transforms} == {"world"}
                 got = [[t.transform.translation.x, t.transform.translation.y, t.transform.translation.z,
                         t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z,
@@ -131,7 +131,7 @@ def test_mcap_ros2_decoder_reads_every_message(recorded):
             assert message.log_time >= last_log            # never decreasing, in file order
             last_log = message.log_time
             if channel.topic == "/tf":
-                assert [t.child_frame_id for t in decoded.transforms] == ["domain_0", "domain_1"]
+                assert [t.child_frame_id for t in decoded.transforms] == ["mdss/domain_0", "mdss/domain_1"]
                 k = seen["/tf"] - 1
                 tr = decoded.transforms[1].transform.translation
                 assert [tr.x, tr.y, tr.z] == ref[k]["poses"][1, :3].tolist()

@@ -99,6 +99,9 @@ class Topics:
     def __init__(self, namespace=NAMESPACE):
         ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
         self.namespace = ns
+        # the node's own name (the last part of its namespace): it names the /diagnostics
+        # status and prefixes the domain frames on /tf, so several bodies never collide
+        self.node_name = ns.rsplit("/", 1)[-1] or NAMESPACE.strip("/")
         self.wrench = f"{ns}/wrench"
         self.point_forces = f"{ns}/point_forces"
         self.clear_forces = f"{ns}/clear_forces/request"
@@ -113,6 +116,7 @@ class Topics:
         self.clock = "/clock"
         self.diagnostics = "/diagnostics"
         self.tf = "/tf"
+        self.tf_prefix = f"{self.node_name}/"             # /tf child frames: <node name>/<domain name>
 
     def collider_pose(self, name):
         return f"{self.namespace}/colliders/{name}/pose"
@@ -370,7 +374,8 @@ class SimOutputs:
             out.append(self._out(tp.domain_poses, convert.pose_array(t, self.frame, poses), t))
             transforms = convert.domain_transforms(t, self.frame, self.domain_names, poses)
             out.extend(self._out(tp.domain_transforms, msg, t) for msg in transforms)
-            out.append(self._out(tp.tf, tf_message_bytes(transforms), t))
+            tf = convert.domain_transforms(t, self.frame, self.domain_names, poses, prefix=tp.tf_prefix)
+            out.append(self._out(tp.tf, tf_message_bytes(tf), t))
             for c in self.colliders:
                 w = sim.collider_wrench(c)
                 _finite(f"wrench on collider {c!r}", w, t)
@@ -410,8 +415,7 @@ class SimOutputs:
             "inputs_applied": inputs_applied,
             "rejected_total": inputs_rejected,
         }
-        name = self.topics.namespace.rstrip("/").rsplit("/", 1)[-1] or "mdss"     # as the node names it
-        msg = convert.diagnostics(sim.time, f"{name}: simulation", f"scene:{sim.scene.name}", "ok", "running", values)
+        msg = convert.diagnostics(sim.time, f"{self.topics.node_name}: simulation", f"scene:{sim.scene.name}", "ok", "running", values)
         return self._out(self.topics.diagnostics, msg, sim.time)
 
 

@@ -276,11 +276,12 @@ def pose_array(t, frame_id, poses):
     return PoseArray(header=header(t, frame_id), poses=[_pose(p) for p in poses])
 
 
-def domain_transforms(t, frame_id, names, poses):
-    """One geometry_msgs/TransformStamped per domain: frame_id -> domain name."""
+def domain_transforms(t, frame_id, names, poses, prefix=""):
+    """One geometry_msgs/TransformStamped per domain: frame_id -> prefix + domain name
+    (~/domain_transforms: no prefix; /tf: "<node name>/")."""
     out = []
     for name, p in zip(names, poses):
-        msg = TransformStamped(header=header(t, frame_id), child_frame_id=name)
+        msg = TransformStamped(header=header(t, frame_id), child_frame_id=prefix + name)
         tr = msg.transform
         tr.translation.x, tr.translation.y, tr.translation.z = (float(v) for v in p[:3])
         tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w = (float(v) for v in p[3:7])
