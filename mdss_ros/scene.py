@@ -317,6 +317,7 @@ def load_scene(path_or_dict, overrides=None):
     data = _validate(raw, SCHEMA, "", source)
     warnings = _check_sections(data, source)
     _check_body(data, source, Path(base))
+    _check_colliders(data, source, Path(base))
     _check_model(data["model"], source)
     return Scene(data=data, source=source, base_dir=Path(base), warnings=warnings)
 
@@ -401,6 +402,24 @@ def _check_body(data, source, base_dir):
         make_material(data["body"]["material"])
     except SceneError as err:
         raise SceneError(f"{source}: body.material: {err}") from err
+
+
+def _check_colliders(data, source, base_dir):
+    """Mesh colliders' own keys at load (file found and supported, scale and resolution > 0,
+    no unknown key): a wrong path fails with the key before the model is built. Everything
+    else about colliders (and a mesh's closedness) is checked by make_collider when the
+    Simulator builds them."""
+    from .contact.colliders import MESH_KEYS
+    from .contact.mesh_sdf import check_spec
+    for name, spec in data["colliders"].items():
+        if not isinstance(spec, dict) or spec.get("shape") != "mesh":
+            continue
+        where = f"{source}: colliders.{name}"
+        allowed = set(MESH_KEYS) | {"shape", "position", "orientation", "reach"}
+        unknown = sorted(set(spec) - allowed)
+        if unknown:
+            raise SceneError(f"{where}: unknown key(s) {unknown} for a mesh (allowed: {sorted(allowed)})")
+        check_spec(where, spec, base_dir)
 
 
 # Keys the reduced model reads from its sub-sections (it checks values when it builds).

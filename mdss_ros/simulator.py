@@ -44,6 +44,7 @@ class Simulator:
         self.build_seconds = time.perf_counter() - t0
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
         self._dt = self.model.dt
+        self._collider_cache, self._collider_sdfs = cache, {}     # mesh colliders' grids (reset reuses them)
         self._make_colliders()
         self._collider_names = set(self.colliders)
         if hasattr(self.model, "watch"):
@@ -57,7 +58,9 @@ class Simulator:
     def _make_colliders(self):
         from .contact.colliders import make_collider
         try:
-            self.colliders = {name: make_collider(name, spec) for name, spec in self.scene["colliders"].items()}
+            self.colliders = {name: make_collider(name, spec, self.scene.base_dir, self._collider_cache,
+                                                  self._collider_sdfs)
+                              for name, spec in self.scene["colliders"].items()}
         except SceneError as err:
             raise SceneError(f"{self.scene.source}: {err}") from err
         # Poses at the start of the coming step, for sweeping fast colliders.

@@ -8,6 +8,7 @@ A collider is declared in the scene's `colliders` map and posed by the timeline,
       rod:   {shape: capsule, radius: 0.02, half_height: 0.1, orientation: [0, 0, 0, 1]}
       block: {shape: box, half_extents: [0.1, 0.1, 0.05]}
       floor: {shape: plane}                      # the local z = 0 plane, normal +z
+      finger: {shape: mesh, file: finger.obj, scale: 0.001}   # closed surface: contact/mesh_sdf.py
       tool:  {shape: sphere, radius: 0.02, reach: {sphere: {center: [0, 0, 0.1], radius: 0.05}}}
 
 `reach` (optional, a vertex selector) marks the part of the body the collider can touch;
@@ -37,7 +38,10 @@ import numpy as np
 from ..errors import SceneError
 from ..rotations import matrix_from_quat
 
-SHAPES = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "box": ("half_extents",), "plane": ()}
+SHAPES = {"sphere": ("radius",), "capsule": ("radius", "half_height"), "box": ("half_extents",), "plane": (),
+          "mesh": ()}
+# Keys of a mesh collider besides the common ones (file required; contact/mesh_sdf.py checks them).
+MESH_KEYS = ("file", "scale", "resolution")
 
 
 @dataclass
@@ -53,6 +57,7 @@ class Collider:
     position: np.ndarray = field(default_factory=lambda: np.zeros(3))
     orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     face_contacts: bool = True
+    sdf: object = None           # a mesh collider's sampled field (contact.mesh_sdf.MeshSDF)
 
     def set_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0)):
         q = np.asarray(orientation, dtype=np.float64)
@@ -90,6 +95,8 @@ class Collider:
         centre, a capsule's axis ends and middle; none for a plane (a half-space)."""
         if self.shape in ("sphere", "box"):
             return self.position[None, :].copy()
+        if self.shape == "mesh":                      # the grid node deepest inside the mesh
+            return self.position + self.sdf.core @ self.rotation.T
         if self.shape == "capsule":
             half = self.half_height * self.rotation[:, 2]
             return np.stack([self.position - half, self.position, self.position + half])
@@ -111,6 +118,8 @@ class Collider:
         elif self.shape == "plane":
             phi = p[:, 2].copy()
             n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+        elif self.shape == "mesh":
+            phi, n = self.sdf.evaluate(p)
         else:                                                              # validated on creation
             raise ValueError(self.shape)
         return phi, n @ R.T
@@ -195,8 +204,12 @@ def clear_position(collider, points, clearance):
     return None if best is None else best[1]
 
 
-def make_collider(name, spec):
-    """Collider from a scene's colliders.<name> mapping; SceneError names the bad key."""
+def make_collider(name, spec, base_dir=None, cache=None, memo=None):
+    """Collider from a scene's colliders.<name> mapping; SceneError names the bad key.
+
+    A mesh collider's file is relative to base_dir (the scene's folder; default the working
+    directory); its distance grid comes from memo (a dict kept by the caller across resets),
+    the precompute cache (default PrecomputeCache()) or is built (contact/mesh_sdf.py)."""
     where = f"colliders.{name}"
     if not isinstance(spec, dict):
         raise SceneError(f"{where}: expected a mapping with a shape, got {spec!r}")
@@ -204,7 +217,8 @@ def make_collider(name, spec):
     if shape not in SHAPES:
         raise SceneError(f"{where}.shape: {shape!r} is not one of {', '.join(SHAPES)}")
     allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach"} | (
-        {"face_contacts"} if shape in ("sphere", "capsule") else set())
+        {"face_contacts"} if shape in ("sphere", "capsule") else set()) | (
+        set(MESH_KEYS) if shape == "mesh" else set())
     unknown = sorted(set(spec) - allowed)
     if unknown:
         raise SceneError(f"{where}: unknown key(s) {unknown} for a {shape} (allowed: {sorted(allowed)})")
@@ -227,4 +241,7 @@ def make_collider(name, spec):
         raise SceneError(f"{where}: {err}") from err
     if np.asarray(c.position).shape != (3,):
         raise SceneError(f"{where}.position: expected 3 numbers, got {spec.get('position')!r}")
+    if shape == "mesh":
+        from .mesh_sdf import build_mesh_sdf
+        c.sdf = build_mesh_sdf(where, spec, base_dir, cache, memo)
     return c

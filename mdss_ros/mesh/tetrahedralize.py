@@ -140,16 +140,14 @@ def _checked_surface(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
         if len(left) < len(holes):
             changes.append(f"filled {len(holes) - len(left)} small holes (3 or 4 edges)")
         if left:
-            worst = ", ".join(f"{n} edges around {np.round(c, 4).tolist()} ({size:.3g} across)"
-                              for n, c, size in left[:3])
             raise MeshError(f"surface is not watertight: {len(left)} hole(s) too large to fill without changing "
-                            f"the shape; largest: {worst}. Close them in a mesh tool (e.g. MeshLab, Blender's "
-                            f"3D-print toolbox), or give a tet mesh (.vtu, .msh)")
+                            f"the shape; largest: {hole_summary(left)}. Close them in a mesh tool (e.g. MeshLab, "
+                            f"Blender's 3D-print toolbox), or give a tet mesh (.vtu, .msh)")
     over = non_manifold_edges(mesh.faces)
     if len(over):
-        where = np.round(mesh.vertices[over[0]].mean(0), 4).tolist()
         raise MeshError(f"surface is not a 2-manifold: {len(over)} edges are shared by more than two triangles "
-                        f"(the first near {where}); separate the touching parts or give a tet mesh")
+                        f"(the first near {edge_place(mesh.vertices, over)}); separate the touching parts or give "
+                        f"a tet mesh")
     if not mesh.is_winding_consistent:
         trimesh.repair.fix_winding(mesh)
         if not mesh.is_winding_consistent:
@@ -197,6 +195,17 @@ def boundary_loops(vertices, faces):
         size = float(np.linalg.norm(pts.max(0) - pts.min(0)))
         out.append((int(np.count_nonzero(label[local[:, 0]] == k)), pts.mean(0), size))
     return sorted(out, key=lambda h: (-h[0], -h[2]))
+
+
+def hole_summary(holes, scale=1.0, most=3):
+    """'24 edges around [x, y, z] (0.031 across), ...' for the largest holes (boundary_loops)."""
+    return ", ".join(f"{n} edges around {np.round(c * scale, 4).tolist()} ({size * scale:.3g} across)"
+                     for n, c, size in holes[:most])
+
+
+def edge_place(vertices, edges, scale=1.0):
+    """Where the first of edges (k, 2) is: its midpoint [x, y, z], rounded."""
+    return np.round(np.asarray(vertices)[edges[0]].mean(0) * scale, 4).tolist()
 
 
 def non_manifold_edges(faces):
