@@ -41,7 +41,7 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
     "$py" -m venv "$venv" || die "could not create a venv with $py"
   fi
   # pip's own output goes to a log, shown only when a step fails: a successful install
-  # prints three progress lines and nothing else (setuptools' editable-install banner and
+  # prints four progress lines and nothing else (setuptools' editable-install banner and
   # build warnings are noise to a user).
   log="$venv/bootstrap.log"
   : > "$log"

@@ -302,7 +302,9 @@ def test_static_press_from_rest_converges_to_the_tolerance(kind):
                                    "face_contacts": False}}, **model)
     scene["gravity"] = [0.0, 0.0, 0.0]
     scene["pins"] = [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}]
-    sim = Simulator(scene)
+    from mdss_ros.contact.colliders import ColliderInsideWarning
+    with pytest.warns(ColliderInsideWarning, match="2.0 mm deep"):    # started 2 mm in, on purpose
+        sim = Simulator(scene)
     sim.step()
     st = sim.stats()
     assert sim.collider_wrench("ball")[2] > 0
