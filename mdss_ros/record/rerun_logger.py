@@ -139,7 +139,7 @@ class RerunLogger:
         for name in self.domain_names:
             rec.log(f"world/domains/{name}", rr.TransformAxes3D(0.1 * extent), static=True)
         for name, spec in sim.scene["colliders"].items():
-            shape = _collider_shape(rr, spec, extent)
+            shape = _collider_shape(rr, spec, extent, sim.scene.base_dir)
             if shape is not None:
                 rec.log(f"world/colliders/{name}", shape, static=True)
         for path, color in (("plots/energy/total", (40, 40, 40)), ("plots/energy/kinetic", (214, 39, 40)),
@@ -216,11 +216,19 @@ class RerunLogger:
                 self.rec.disconnect()
 
 
-def _collider_shape(rr, spec, extent):
+def _collider_shape(rr, spec, extent, base_dir=None):
     """A static rerun shape of a scene collider spec in its local frame (mdss_ros.contact.colliders:
-    sphere radius; capsule radius, half_height along local z; box half_extents; plane z = 0)."""
+    sphere radius; capsule radius, half_height along local z; box half_extents; plane z = 0;
+    mesh: its file's triangles, scaled, relative to the scene's folder base_dir)."""
     shape = spec.get("shape")
     color = [(150, 150, 160, 110)]
+    if shape == "mesh":
+        import trimesh
+        from pathlib import Path
+        mesh = trimesh.load(str(Path(base_dir or ".") / spec["file"]), force="mesh")
+        return rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices) * float(spec.get("scale", 1.0)),
+                         triangle_indices=np.asarray(mesh.faces, dtype=np.uint32),
+                         vertex_colors=np.tile(np.array(color[0], dtype=np.uint8), (len(mesh.vertices), 1)))
     if shape == "sphere":
         return rr.Ellipsoids3D(radii=[float(spec["radius"])], colors=color, fill_mode="solid")
     if shape == "capsule":
