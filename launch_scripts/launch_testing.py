@@ -519,6 +519,18 @@ def probe_main():
             out.append(d)
         return out
 
+    def matched_publisher(cls, topic, cmd):
+        """The probe's publisher of topic (made once), after a subscriber matched it."""
+        if topic not in pubs:
+            pubs[topic] = node.create_publisher(cls, topic, qos(cmd.get("qos", "reliable"), 100))
+        pub = pubs[topic]
+        deadline = time.monotonic() + cmd.get("wait_subscribers", 30.0)
+        while pub.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no subscriber on {topic}")
+            time.sleep(0.02)
+        return pub
+
     def wait_future(fut, timeout):
         done = threading.Event()
         fut.add_done_callback(lambda f: done.set())
@@ -542,14 +554,7 @@ def probe_main():
         if op == "pub":
             topic = cmd["topic"]
             cls = _import_type(cmd["type"])
-            if topic not in pubs:
-                pubs[topic] = node.create_publisher(cls, topic, qos(cmd.get("qos", "reliable"), 100))
-            pub = pubs[topic]
-            deadline = time.monotonic() + cmd.get("wait_subscribers", 30.0)
-            while pub.get_subscription_count() == 0:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"no subscriber on {topic}")
-                time.sleep(0.02)
+            pub = matched_publisher(cls, topic, cmd)
             msgs = cmd["msg"] if isinstance(cmd["msg"], list) else [cmd["msg"]]
             for m in msgs:
                 pub.publish(_set_fields(cls(), m))
@@ -614,14 +619,7 @@ def probe_main():
         if op == "play_clock":
             from rosgraph_msgs.msg import Clock
             topic, key = cmd["topic"], "@sent" + cmd["topic"]
-            if topic not in pubs:
-                pubs[topic] = node.create_publisher(Clock, topic, qos(cmd.get("qos", "reliable"), 100))
-            pub = pubs[topic]
-            deadline = time.monotonic() + cmd.get("wait_subscribers", 30.0)
-            while pub.get_subscription_count() == 0:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f"no subscriber on {topic}")
-                time.sleep(0.02)
+            pub = matched_publisher(Clock, topic, cmd)
             with lock:
                 store[key] = []
 
