@@ -253,13 +253,14 @@ class Probe(Process):
         """{"publishers": n, "subscribers": m} the probe sees on topic now."""
         return self.request("graph", topic=topic)
 
-    def play_clock(self, times, period, topic="/clock", qos="reliable", wait_subscribers=30.0):
+    def play_clock(self, times, period, topic="/clock", qos="reliable", wait_subscribers=30.0, subscribers=1):
         """Be a clock master: publish rosgraph_msgs/Clock at each of times (s, in order) every
-        `period` s of wall time, from a thread; returns once a subscriber matched. Each tick
+        `period` s of wall time, from a thread; returns once `subscribers` subscriptions matched. Each tick
         is kept under "@sent" + topic (get / wait read it) with, as _recv, the wall time
         taken just before it was published."""
         return self.request("play_clock", topic=topic, times=[float(t) for t in times], period=period,
-                            qos=qos, wait_subscribers=wait_subscribers, timeout=wait_subscribers + 10)
+                            qos=qos, wait_subscribers=wait_subscribers, subscribers=subscribers,
+                            timeout=wait_subscribers + 10)
 
     def diagnostics(self, where=None, timeout=30.0, name="mdss: simulation"):
         """Values (a dict of str) of the first /diagnostics status `name` matching where that
@@ -520,14 +521,16 @@ def probe_main():
         return out
 
     def matched_publisher(cls, topic, cmd):
-        """The probe's publisher of topic (made once), after a subscriber matched it."""
+        """The probe's publisher of topic (made once), once cmd["subscribers"] (default 1)
+        subscriptions matched it: with two nodes on one clock, starting after the first
+        match let the second miss the first ticks."""
         if topic not in pubs:
             pubs[topic] = node.create_publisher(cls, topic, qos(cmd.get("qos", "reliable"), 100))
         pub = pubs[topic]
         deadline = time.monotonic() + cmd.get("wait_subscribers", 30.0)
-        while pub.get_subscription_count() == 0:
+        while pub.get_subscription_count() < cmd.get("subscribers", 1):
             if time.monotonic() > deadline:
-                raise TimeoutError(f"no subscriber on {topic}")
+                raise TimeoutError(f"fewer than {cmd.get('subscribers', 1)} subscribers on {topic}")
             time.sleep(0.02)
         return pub
 

@@ -53,7 +53,7 @@ def test_two_bodies_in_two_processes_step_in_lockstep_under_one_clock_master(tmp
             probe.sub(f"/{name}/domain_poses", POSE_T)
         probe.pub("/body_a/wrench", WRENCH_T, push)        # body_a only, stamped 0.1 s
         probe.diagnostics(where={"inputs_pending": "1"}, name="body_a: simulation")
-        probe.play_clock(ticks, period=0.02)
+        probe.play_clock(ticks, period=0.02, subscribers=2)      # both bodies matched before the first tick
         probe.wait("@sent/clock", count=len(ticks), timeout=30)
         for name in mcaps:
             probe.wait(f"/{name}/domain_poses", where={"stamp_ge": 40 * DT - 1e-6}, timeout=30)
