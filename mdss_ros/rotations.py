@@ -45,6 +45,26 @@ def exp_so3(w):
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th ** 2 * K @ K
 
 
+def exp_so3_batch(w):
+    """exp([w_i]x) for a stack w (n, 3): (n, 3, 3), the same formula as exp_so3 per row."""
+    w = np.asarray(w, dtype=np.float64).reshape(-1, 3)
+    th = np.sqrt((w * w).sum(1))
+    z = np.zeros(len(w))
+    K = np.stack([np.stack([z, -w[:, 2], w[:, 1]], 1), np.stack([w[:, 2], z, -w[:, 0]], 1),
+                  np.stack([-w[:, 1], w[:, 0], z], 1)], 1)
+    small = th < 1e-8
+    safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe ** 2)
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def orthonormalise_batch(R):
+    """The nearest rotations U V^T of a stack R (n, 3, 3) (polar factor by SVD)."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
 def cross(a, b):
     """a x b for 3-vectors or stacks (..., 3), broadcasting like np.cross. np.cross checks
     and moves axes on every call (~20 us), which the reduced step pays dozens of times."""

@@ -108,7 +108,7 @@ def _random_state(m, seed=0):
     from mdss_ros.rotations import exp_so3
     rng = np.random.default_rng(seed)
     for k, dom in enumerate(m.subspace):
-        m.q[k] = 2e-3 * rng.normal(size=dom.r)
+        m.q[k, :dom.r] = 2e-3 * rng.normal(size=dom.r)
         m.frames.R[k] = exp_so3(0.05 * rng.normal(size=3)) @ m.frames.R[k]
         m.frames.c[k] += 1e-3 * rng.normal(size=3)
 

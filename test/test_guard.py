@@ -91,14 +91,15 @@ def _nan(model):
         model.x = model.x.copy()
         model.x[5] = np.nan
     else:
-        model.q[0] = np.full_like(model.q[0], np.nan)
+        model.q = model.q.copy()
+        model.q[0] = np.nan
 
 
 def _blow_up(model):
     if model.kind == "full":
         model.v = 100.0 * model.v + 1.0
     else:
-        model.qd = [100.0 * qd + 1.0 for qd in model.qd]
+        model.qd = np.where(model.layout.mask, 100.0 * model.qd + 1.0, 0.0)
 
 
 @pytest.mark.parametrize("spoil, reason", [(_nan, "non-finite"), (_blow_up, "energy")])
@@ -198,21 +199,28 @@ def test_fictitious_matrices_split_the_explicit_force():
     sim = _spinning_reduced("implicit", 1 / 90)
     sim.step(3)
     m = sim.model
-    C, K = m._fictitious_matrices(m.frames)
+    C, K = m._fictitious_matrices(m.frames)                 # (D, r_max, r_max) per domain
+    L = m.layout
     rng = np.random.default_rng(0)
-    for k, dom in enumerate(m.subspace):
-        o, r = m.sub_offsets[k], dom.r
-        omega = m.frames.R[k].T @ m.frames.w[k]
-        q, qd = rng.normal(size=r), rng.normal(size=r)
-        f0 = fictitious_forces(dom.tensors, np.zeros(r), np.zeros(r), omega, np.zeros(3))
-        f = fictitious_forces(dom.tensors, q, qd, omega, np.zeros(3))
-        np.testing.assert_allclose(f, f0 + C[o:o + r, o:o + r] @ qd + K[o:o + r, o:o + r] @ q, rtol=1e-10,
-                                   atol=1e-10 * np.abs(f).max())
-    np.testing.assert_allclose(C, -C.T, atol=1e-12 * np.abs(C).max())
-    np.testing.assert_allclose(K, K.T, atol=1e-12 * np.abs(K).max())
+    omega = np.einsum("dji,dj->di", m.frames.R, m.frames.w)
+    q, qd = rng.normal(size=L.mask.shape) * L.mask, rng.normal(size=L.mask.shape) * L.mask
+    zero = np.zeros_like(q)
+    f0 = fictitious_forces(L, zero, zero, omega, np.zeros_like(omega))
+    f = fictitious_forces(L, q, qd, omega, np.zeros_like(omega))
+    np.testing.assert_allclose(f, f0 + np.einsum("dab,db->da", C, qd) + np.einsum("dab,db->da", K, q),
+                               rtol=1e-10, atol=1e-10 * np.abs(f).max())
+    # one domain checked against the unstacked formula of frames.py's docstring
+    t, r = m.subspace[0].tensors, m.subspace[0].r
+    w0, q0, qd0 = omega[0], q[0, :r], qd[0, :r]
+    direct = (2.0 * np.einsum("b,abk,k->a", qd0, t.W, w0) - np.einsum("i,aij,j->a", w0, t.B1, w0)
+              - np.einsum("b,i,abij,j->a", q0, w0, t.B2, w0) + (w0 @ w0) * (t.s + q0))
+    np.testing.assert_allclose(f[0, :r], direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
+    C, K = C[L.movable], K[L.movable]
+    np.testing.assert_allclose(C, -C.transpose(0, 2, 1), atol=1e-12 * np.abs(C).max())
+    np.testing.assert_allclose(K, K.transpose(0, 2, 1), atol=1e-12 * np.abs(K).max())
     assert np.linalg.eigvalsh(K).min() > -1e-9 * np.abs(K).max()
     Q = rng.normal(size=m.n_gen)
-    Qr = m._modal_coriolis_rotate(C, Q)
+    Qr = m._modal_coriolis_rotate(m._fictitious_matrices(m.frames)[0], Q)
     assert not np.allclose(Qr, Q)
     np.testing.assert_allclose(np.linalg.norm(Qr), np.linalg.norm(Q), rtol=1e-12)
 
@@ -330,7 +338,7 @@ def test_reduced_guard_counts_inverted_samples_and_coupling_elements_like_the_ve
     rng = np.random.default_rng(0)
     counts = []
     for scale in (0.0, 0.3, 3.0):
-        m.q = [scale * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace]
+        m.q = m.layout.pad([scale * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace])
         m._start_evaluation()                         # what the guard's energy check leaves behind
         x = m.vertex_positions()
         tets = [dom.vertices[dom.forces.tets[dom.sampled.elements]] for dom in m.subspace] + [m.body.tets[m.c_tets]]
@@ -350,7 +358,7 @@ def _tangled_free_body(untangle_after):
         "model.guard.untangle_after": untangle_after})), cache=PrecomputeCache(enabled=False))
     m = sim.model
     rng = np.random.default_rng(3)
-    m.q = [0.03 * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace]
+    m.q = m.layout.pad([0.03 * rng.standard_normal(dom.r) * np.sqrt(dom.total_mass) for dom in m.subspace])
     m.frames.R[1] = exp_so3(np.array([0.0, 0.0, 2.5])) @ m.frames.R[1]
     sim.guard.invalidate()
     return sim
@@ -362,12 +370,11 @@ def test_untangle_shrinks_a_tangle_until_no_element_is_inverted():
     assert inverted_tets(sim.vertex_positions(), tets) > 0
     mass = m.vertex_mass[:, None]
     com = (mass * sim.vertex_positions()).sum(0) / mass.sum()
-    q = [qi.copy() for qi in m.q]
+    q = m.q.copy()
     s = m.untangle(tets)
     assert 0.0 < s < 1.0
     assert inverted_tets(sim.vertex_positions(), tets) == 0
-    for a, b in zip(m.q, q):
-        np.testing.assert_allclose(a, s * b)
+    np.testing.assert_allclose(m.q, s * q)
     # the mass centre stays (the modes carry no mass moment; frames move about their centre)
     np.testing.assert_allclose((mass * sim.vertex_positions()).sum(0) / mass.sum(), com, atol=1e-9)
     assert m.untangle(tets) == 1.0                     # nothing left to untangle

@@ -123,7 +123,7 @@ def test_diagnostics_report_a_guard_recovery_then_ok(node, monkeypatch):
         out = real(*a, **k)
         calls["n"] += 1
         if calls["n"] == 1:
-            model.q[0] = np.full_like(model.q[0], np.nan)
+            model.q = np.full_like(model.q, np.nan)
         return out
     monkeypatch.setattr(model, "step", spoiled)
     node.advance()

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..rotations import exp_so3
+from ..rotations import exp_so3_batch, orthonormalise_batch
 
 
 @dataclass(frozen=True)
@@ -54,14 +54,19 @@ def fictitious_tensors(U, r_local, mass):
 
 
 def fictitious_forces(t, q, qd, omega, alpha):
-    """U^T f_fc: (r,) for q, qd (r,) and the frame's omega, alpha (3,) in the local frame."""
-    Wqd = np.einsum("b,abk->ak", qd, t.W)
-    Wq = np.einsum("b,abk->ak", q, t.W)
-    w2 = float(omega @ omega)
-    centrifugal = (-np.einsum("i,aij,j->a", omega, t.B1, omega)
-                   - np.einsum("b,i,abij,j->a", q, omega, t.B2, omega)
-                   + w2 * (t.s + q))
-    return 2.0 * Wqd @ omega + Wq @ alpha + centrifugal
+    """U^T f_fc of every domain at once: (D, r_max).
+
+    t: tensors stacked per domain (layout.DomainLayout: W, B1, B2, s, zero padded);
+    q, qd (D, r_max); omega, alpha (D, 3) in each domain's frame.
+    """
+    Wqd = np.einsum("db,dabk->dak", qd, t.W)
+    Wq = np.einsum("db,dabk->dak", q, t.W)
+    w2 = (omega * omega).sum(1)
+    centrifugal = (-np.einsum("di,daij,dj->da", omega, t.B1, omega)
+                   - np.einsum("db,di,dabij,dj->da", q, omega, t.B2, omega)
+                   + w2[:, None] * (t.s + q))
+    return (2.0 * np.einsum("dak,dk->da", Wqd, omega) + np.einsum("dak,dk->da", Wq, alpha)
+            + centrifugal)
 
 
 @dataclass
@@ -94,13 +99,8 @@ class FrameState:
         self.v = np.where(movable[:, None], v_new, 0.0)
         self.w = np.where(movable[:, None], w_new, 0.0)
         self.c = self.c + dt * self.v
-        for i in np.flatnonzero(movable):          # loop over domains (d ~ 10), not vertices
-            self.R[i] = orthonormalise(exp_so3(dt * self.w[i]) @ self.R[i])
-
-
-def orthonormalise(R):
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+        mv = np.flatnonzero(movable)
+        self.R[mv] = orthonormalise_batch(exp_so3_batch(dt * self.w[mv]) @ self.R[mv])
 
 
 def rest_inertia(r_local, mass):

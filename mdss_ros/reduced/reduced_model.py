@@ -32,12 +32,15 @@ from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
-from ..rotations import cross, exp_so3, quat_from_matrix
+from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch, quat_from_matrix
+from . import reconstruct
 from .block_cholesky import BlockCholesky
 from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
-from .frames import FrameState, orthonormalise, fictitious_forces
+from .frames import FrameState, fictitious_forces
+from .layout import DomainLayout
+from .sampled_forces import StackedSamples
 
 
 def _jsonable(x):
@@ -49,15 +52,6 @@ def _jsonable(x):
     if isinstance(x, (np.floating, np.integer, np.bool_)):
         return x.item()
     return x
-
-
-def _det_identity_plus(H):
-    """det(I + H) of m 3x3 matrices given row-major as H (m, 9); np.linalg.det's per-call
-    overhead is most of the guard's inversion check on a small model."""
-    a, b, c = H[:, 0] + 1.0, H[:, 1], H[:, 2]
-    d, e, f = H[:, 3], H[:, 4] + 1.0, H[:, 5]
-    g, h, i = H[:, 6], H[:, 7], H[:, 8] + 1.0
-    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
 class ReducedModel:
@@ -158,6 +152,7 @@ class ReducedModel:
         sizes = np.array([dom.n_dofs for dom in self.subspace], dtype=np.int64)
         self.sub_offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         self.S = int(self.sub_offsets[-1])
+        self.layout = DomainLayout.build(self.subspace, self.sub_offsets, n)
         full_free = np.zeros(n, dtype=bool)
         for fd in self.full:
             full_free[fd.vertices[fd.free]] = True
@@ -207,7 +202,9 @@ class ReducedModel:
         self.block_solver = BlockCholesky(sizes, self._subspace_edges(), self.order) if self.F == 0 else None
         self.sparse_solver = SparseSolver(solver) if self.F > 0 else None
         self.reset()
+        self.samples = None             # StackedSamples once cubature exists (_stack_samples)
         self.cubature_info = self._build_cubature(cfg.get("cubature") or {}, say)
+        self._stack_samples()
         self.build_seconds = time.perf_counter() - t_start
 
     def _build_cubature(self, ccfg, say):
@@ -262,6 +259,13 @@ class ReducedModel:
             arrays["c_tets"], arrays["c_weights"], arrays["c_pairs"] = self.c_tets, self.c_weights, self.c_pairs
         self.cache.save("cubature", key, arrays, _jsonable(dict(info, unsymmetric=self.unsymmetric)))
         return info
+
+    def _stack_samples(self):
+        """All domains' cubature samples in one array (one kernel call a step), or None when
+        a domain evaluates every element (no cubature: its exact sparse path)."""
+        sampled = [dom.sampled for dom in self.subspace]
+        ok = bool(sampled) and all(sm is not None for sm in sampled)
+        self.samples = StackedSamples(sampled, self.layout.r_max, self.body.material) if ok else None
 
     def _restore_cubature(self, arrays, meta):
         from .sampled_forces import SampledDomainForces
@@ -376,8 +380,10 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ state
     def reset(self):
-        self.q = [np.zeros(dom.r) for dom in self.subspace]
-        self.qd = [np.zeros(dom.r) for dom in self.subspace]
+        # q, qd (D, r_max) zero-padded (layout.py). They are replaced, never written in
+        # place, by a step or set_state: the cached start evaluation checks them by identity.
+        self.q = self.layout.zeros()
+        self.qd = self.layout.zeros()
         self.frames = FrameState.at_rest([dom.cbar for dom in self.subspace])
         self.x_full = self.body.vertices.copy()          # only full-space rows are used
         self.v_full = np.zeros_like(self.x_full)
@@ -392,15 +398,15 @@ class ReducedModel:
         """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
         full-space x and v, and what the outputs read (last energy, contact, stats).
         set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
-        return {"q": [qi.copy() for qi in self.q], "qd": [qi.copy() for qi in self.qd],
+        return {"q": self.q.copy(), "qd": self.qd.copy(),
                 "frames": self.frames.copy(), "x_full": self.x_full.copy(), "v_full": self.v_full.copy(),
                 "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats),
                 "contact_history": list(self._contact_history)}
 
     def set_state(self, state):
         """Restore a get_state() snapshot."""
-        self.q = [qi.copy() for qi in state["q"]]
-        self.qd = [qi.copy() for qi in state["qd"]]
+        self.q = np.array(state["q"], dtype=np.float64)
+        self.qd = np.array(state["qd"], dtype=np.float64)
         self.frames = state["frames"].copy()
         self.x_full, self.v_full = state["x_full"].copy(), state["v_full"].copy()
         self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
@@ -428,13 +434,7 @@ class ReducedModel:
         self.v_full[self.body.pinned] = 0.0
 
     def get_Q(self):
-        Q = np.zeros(self.n_gen)
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k]
-            Q[o:o + dom.r] = self.qd[k]
-            if dom.movable:
-                Q[o + dom.r:o + dom.r + 3] = self.frames.v[k]
-                Q[o + dom.r + 3:o + dom.r + 6] = self.frames.w[k]
+        Q = self.layout.scatter(np.zeros(self.n_gen), self.qd, self.frames.v, self.frames.w)
         if self.F:
             Q[self.S:] = self._full_free(self.v_full)
         return Q
@@ -459,16 +459,13 @@ class ReducedModel:
         """
         q0, frames0, x0, gm = base
         dt = self.dt
-        q, qd = [], []
+        L = self.layout
+        qd = L.gather(Q)
+        q = q0 + dt * qd
         v = frames0.v.copy()
         w = frames0.w.copy()
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k]
-            qd.append(Q[o:o + dom.r].copy())
-            q.append(q0[k] + dt * qd[-1])
-            if dom.movable:
-                v[k] = Q[o + dom.r:o + dom.r + 3]
-                w[k] = Q[o + dom.r + 3:o + dom.r + 6]
+        v[L.movers] = Q[L.lin_index]
+        w[L.movers] = Q[L.ang_index]
         frames = frames0.copy()
         if self.F:
             v_full = self._full_expand(Q[self.S:])
@@ -486,8 +483,7 @@ class ReducedModel:
             frames.c[mv] = C1 + rho.T
             frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
             frames.w[mv] = W + w[mv] @ Rg.T
-            for k in np.flatnonzero(mv):        # loop over domains, not vertices
-                frames.R[k] = orthonormalise(Rg @ exp_so3(dt * w[k]) @ frames0.R[k])
+            frames.R[mv] = orthonormalise_batch(Rg @ exp_so3_batch(dt * w[mv]) @ frames0.R[mv])
             if self.F:
                 rho_f = (x0 - C + dt * v_full) @ Rg.T
                 x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
@@ -497,11 +493,13 @@ class ReducedModel:
         # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
         # inertia at the predicted rotation; re-express that momentum with the inertia the
         # domain really has after the step, so torque-free domains keep h exactly.
-        for k in np.flatnonzero(self.movable):
-            dom = self.subspace[k]
-            Rp = exp_so3(dt * frames0.w[k]) @ frames0.R[k]
-            h = Rp @ self._inertia(k, q0[k]) @ Rp.T @ (frames.w[k] if gm is None else gm[2] + w[k])
-            frames.w[k] = np.linalg.solve(frames.R[k] @ self._inertia(k, q[k]) @ frames.R[k].T, h)
+        mv = L.movers
+        if len(mv):
+            Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
+            h = np.einsum("dij,dj->di", Rp @ L.inertia(q0)[mv] @ Rp.transpose(0, 2, 1),
+                          frames.w[mv] if gm is None else gm[2] + w[mv])
+            R1 = frames.R[mv]
+            frames.w[mv] = np.linalg.solve(R1 @ L.inertia(q)[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
         if gm is not None:
             # Carrying the state by exp(dt W) also turns its angular momentum by that
             # rotation; where L is not parallel to W (products of inertia) this is a
@@ -518,18 +516,6 @@ class ReducedModel:
         frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
 
-    def _inertia(self, k, q):
-        """Subspace domain k's inertia at q (domains.inertia), remembered for the last two q
-        arrays it was asked about: a step asks for the same few states several times, and
-        q arrays are never changed in place (every step and set_state make new ones)."""
-        memo = self.__dict__.setdefault("_inertia_memo", {})
-        for q_seen, I in memo.get(k, ()):
-            if q_seen is q:
-                return I
-        I = self.subspace[k].inertia(q)
-        memo[k] = (memo.get(k, ())[-1:]) + ((q, I),)
-        return I
-
     def _global_motion(self):
         """(C, V, W, L): mass centre, velocity, angular velocity and angular momentum of
         the whole body, W fitted to L (frames and full-space vertices), or None for a body
@@ -543,7 +529,7 @@ class ReducedModel:
         """Mass centre C, its velocity V, angular momentum L about C and inertia I (3, 3)
         of a state, from the domain frames (the deformation's own angular momentum is
         second order because U is mass-orthogonal to rotations) and full-space vertices."""
-        m_d = np.array([dom.total_mass for dom in self.subspace])
+        m_d = self.layout.total_mass
         full = self.is_full_vertex
         m_f = self.vertex_mass[full]
         x_f, v_f = x_full[full], v_full[full]
@@ -551,7 +537,7 @@ class ReducedModel:
         C = ((m_d[:, None] * fr.c).sum(0) + (m_f[:, None] * x_f).sum(0)) / m
         V = ((m_d[:, None] * fr.v).sum(0) + (m_f[:, None] * v_f).sum(0)) / m
         rho, rho_f = fr.c - C, x_f - C
-        I_d = fr.R @ np.stack([self._inertia(k, qk) for k, qk in enumerate(q)]) @ fr.R.transpose(0, 2, 1)
+        I_d = fr.R @ self.layout.inertia(q) @ fr.R.transpose(0, 2, 1)
         I = (I_d.sum(0) + ((m_d * (rho * rho).sum(1)).sum() + (m_f * (rho_f * rho_f).sum(1)).sum()) * np.eye(3)
              - np.einsum("i,ij,ik->jk", m_d, rho, rho) - np.einsum("i,ij,ik->jk", m_f, rho_f, rho_f))
         L = (cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)
@@ -562,12 +548,11 @@ class ReducedModel:
         """Generalised velocities of the rigid motion (V, W) about C (n_gen,);
         angular_only: W on the domains' angular rows, zero elsewhere."""
         C, V, W = gm[:3]
+        L = self.layout
         Q = np.zeros(self.n_gen)
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k] + dom.r
-            Q[o + 3:o + 6] = W
-            if not angular_only:
-                Q[o:o + 3] = V + cross(W, self.frames.c[k] - C)
+        Q[L.ang_index] = W
+        if not angular_only:
+            Q[L.lin_index] = V + cross(W, self.frames.c[L.movers] - C)
         if self.F and not angular_only:
             Q[self.S:] = self._full_free(V + cross(W, self.x_full - C))
         return Q
@@ -577,10 +562,9 @@ class ReducedModel:
         vertices (n_gen,). The angular rows take W through the momentum form, and the
         Coriolis force through _coriolis_rotate."""
         C, V, W = gm[:3]
+        L = self.layout
         F = np.zeros(self.n_gen)
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k] + dom.r
-            F[o:o + 3] = -dom.total_mass * cross(W, cross(W, self.frames.c[k] - C))
+        F[L.lin_index] = -L.total_mass[L.movers, None] * cross(W, cross(W, self.frames.c[L.movers] - C))
         if self.F:
             f = -self.vertex_mass[:, None] * cross(W, cross(W, self.x_full - C))
             F[self.S:] = self._full_free(f)
@@ -593,109 +577,45 @@ class ReducedModel:
         the rotation keeps |v_rel| and sum m v_rel = 0 exactly."""
         Rc = exp_so3(-2.0 * self.dt * gm[2])
         Q = Q_rel.copy()
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k] + dom.r
-            Q[o:o + 3] = Rc @ Q_rel[o:o + 3]
+        lin = self.layout.lin_index
+        Q[lin] = Q_rel[lin] @ Rc.T
         if self.F:
             Q[self.S:] = self._full_free(self._full_expand(Q_rel[self.S:]) @ Rc.T)
         return Q
 
     # ------------------------------------------------------------------ positions
-    def _domain_world(self, k, local_ids, q, frames):
-        dom = self.subspace[k]
-        p = dom.r_local[local_ids] + np.einsum("lia,a->li", dom.U3[local_ids], q[k])
-        return frames.c[k] + p @ frames.R[k].T
-
-    def _output_plan(self, ids):
-        """Per domain: (rows of ids in it, its basis rows (3m, r) and rest coordinates (m, 3)),
-        kept contiguous so publishing the same vertices every frame is one matvec per domain."""
-        dom_of = self.vertex_domain[ids]
-        plan = []
-        for i, (kind, k) in enumerate(self.domain_kind):
-            sel = np.flatnonzero(dom_of == i)
-            if sel.size == 0:
-                continue
-            if kind == "sub":
-                loc = self.vertex_local[ids[sel]]
-                dom = self.subspace[k]
-                plan.append((kind, k, sel, np.ascontiguousarray(dom.U3[loc].reshape(-1, dom.r)),
-                             dom.r_local[loc]))
-            else:
-                plan.append((kind, k, sel, None, None))
-        return plan
-
     def positions_of(self, ids, q=None, frames=None, x_full=None):
-        """World positions (len(ids), 3) of the given global vertex ids."""
-        if q is None and frames is None and x_full is None and ids is getattr(self, "_plan_ids", None):
-            return self._planned_positions(ids, self._plan)
-        q = self.q if q is None else q
-        frames = self.frames if frames is None else frames
-        x_full = self.x_full if x_full is None else x_full
-        ids = np.asarray(ids, dtype=np.int64)
-        out = np.empty((len(ids), 3))
-        dom_of = self.vertex_domain[ids]
-        for i, (kind, k) in enumerate(self.domain_kind):
-            sel = np.flatnonzero(dom_of == i)
-            if sel.size == 0:
-                continue
-            if kind == "sub":
-                out[sel] = self._domain_world(k, self.vertex_local[ids[sel]], q, frames)
-            else:
-                out[sel] = x_full[ids[sel]]
-        return out
-
-    def _planned_positions(self, ids, plan):
-        """Current positions of ids through an _output_plan of them (one matvec per domain)."""
-        out = np.empty((len(ids), 3))
-        for kind, k, sel, U_rows, r_rows in plan:
-            if kind == "sub":
-                p = r_rows + (U_rows @ self.q[k]).reshape(-1, 3)
-                out[sel] = self.frames.c[k] + p @ self.frames.R[k].T
-            else:
-                out[sel] = self.x_full[ids[sel]]
-        return out
+        """World positions (len(ids), 3) of the given global vertex ids (reconstruct.py)."""
+        return reconstruct.positions(self.layout, ids, self.q if q is None else q,
+                                     self.frames if frames is None else frames,
+                                     self.x_full if x_full is None else x_full)
 
     def watch(self, ids):
-        """Make positions_of(ids) fast for this exact id array (e.g. the surface)."""
-        self._plan_ids = ids
-        self._plan = self._output_plan(np.asarray(ids, dtype=np.int64))
+        """Kept for the Simulator's interface: positions_of is one compiled pass for any ids."""
 
     def vertex_positions(self):
         return self.positions_of(np.arange(len(self.body.vertices)))
 
     def vertex_velocities(self):
         """World velocities (n_verts, 3): v + w x (x - c) + R U qd, or the full-space ones."""
-        out = self.v_full.copy()
-        for k, dom in enumerate(self.subspace):
-            ids = dom.vertices
-            x = self._domain_world(k, np.arange(len(ids)), self.q, self.frames)
-            out[ids] = (self.frames.v[k] + cross(self.frames.w[k], x - self.frames.c[k])
-                        + (dom.U @ self.qd[k]).reshape(-1, 3) @ self.frames.R[k].T)
-        return out
+        return reconstruct.velocities(self.layout, self.vertex_positions(), self.qd, self.frames, self.v_full)
 
     # ------------------------------------------------------------------ forces
     def _interface_J(self, q, frames):
         """J values (n_I, 3, s_max) and world positions (n_I, 3) of the interface vertices."""
+        L = self.layout
         if getattr(self, "_iface_basis", None) is None:
             # Basis rows and rest offsets of every interface vertex, gathered once.
-            n_I, r_max = len(self.iface), max([dom.r for dom in self.subspace] + [1])
-            U = np.zeros((n_I, 3, r_max))
-            r_loc = np.zeros((n_I, 3))
-            row_dom = np.full(n_I, -1, dtype=np.int64)
-            for k, (rows, loc) in enumerate(self.iface_groups):
-                dom = self.subspace[k]
-                U[rows, :, :dom.r] = dom.U3[loc]
-                r_loc[rows] = dom.r_local[loc]
-                row_dom[rows] = k
-            self._iface_basis = (U, r_loc, row_dom, np.array([dom.r for dom in self.subspace], dtype=np.int64),
-                                 np.array([dom.movable for dom in self.subspace], dtype=np.bool_), r_max)
-        U, r_loc, row_dom, r, movable, r_max = self._iface_basis
-        q_pad = np.zeros((len(self.subspace), r_max))
-        for k, qk in enumerate(q):
-            q_pad[k, :len(qk)] = qk
+            rows = L.vertex_row[self.iface]
+            sub = rows >= 0
+            U = np.where(sub[:, None, None], L.U[np.maximum(rows, 0)], 0.0)
+            r_loc = np.where(sub[:, None], L.r_local[np.maximum(rows, 0)], 0.0)
+            row_dom = np.where(sub, L.row_domain[np.maximum(rows, 0)], -1)
+            self._iface_basis = (np.ascontiguousarray(U), np.ascontiguousarray(r_loc), row_dom)
+        U, r_loc, row_dom = self._iface_basis
         J = np.empty((len(self.iface), 3, self.s_max))
         x = np.empty((len(self.iface), 3))
-        interface_jacobian(U, r_loc, row_dom, r, movable, q_pad, np.ascontiguousarray(frames.R),
+        interface_jacobian(U, r_loc, row_dom, L.r, L.movable, np.ascontiguousarray(q), np.ascontiguousarray(frames.R),
                            np.ascontiguousarray(frames.c), J, x)
         full_rows = np.flatnonzero(self.J_full)
         J[full_rows] = self.J_static[full_rows]
@@ -708,14 +628,25 @@ class ReducedModel:
         self.x_full_state = x_full
         G = np.zeros(self.n_gen)
         K_ss = np.zeros((self.S, self.S)) if want_hessian else None
-        energy = 0.0
-        for k, dom in enumerate(self.subspace):
-            e, g, Kr = dom.reduced_tangent(q[k], want_hessian)
-            o = self.sub_offsets[k]
-            G[o:o + dom.r] += g
+        L = self.layout
+        if self.samples is not None:
+            e, g, Kr = self.samples.evaluate(q, want_hessian)
+            energy = float(e.sum())
+            G[L.q_index[L.mask]] = g[L.mask]
             if want_hessian:
-                K_ss[o:o + dom.r, o:o + dom.r] += Kr
-            energy += e
+                ii, jj, valid = self._modal_blocks()
+                K_ss[ii, jj] = Kr[valid]
+        else:
+            # Exact forces over every domain element (no cubature): each domain's sparse
+            # stiffness projected on its basis, the accurate and slow option.
+            energy = 0.0
+            for k, dom in enumerate(self.subspace):
+                e, g, Kr = dom.reduced_tangent(q[k, :dom.r], want_hessian)
+                o = self.sub_offsets[k]
+                G[o:o + dom.r] += g
+                if want_hessian:
+                    K_ss[o:o + dom.r, o:o + dom.r] += Kr
+                energy += e
         t1 = time.perf_counter()
         K_sI = np.zeros((self.S, 3 * self.F_I)) if want_hessian else None
         K_ff = None
@@ -773,6 +704,17 @@ class ReducedModel:
         self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
         return G, K_ss, K_sI, K_ff, energy, J, x_I
 
+    def _modal_blocks(self):
+        """(rows, cols, valid): where the domains' (D, r_max, r_max) modal blocks go in the
+        (S, S) subspace matrix; valid (D, r_max, r_max) drops the padding."""
+        if getattr(self, "_modal_block_index", None) is None:
+            qi = self.layout.q_index
+            valid = (qi[:, :, None] >= 0) & (qi[:, None, :] >= 0)
+            ii = np.broadcast_to(qi[:, :, None], valid.shape)[valid]
+            jj = np.broadcast_to(qi[:, None, :], valid.shape)[valid]
+            self._modal_block_index = (ii, jj, valid)
+        return self._modal_block_index
+
     def _two_phase(self):
         """The coupling projection's static data, built once per coupling set."""
         if getattr(self, "_tp_for", None) is not self.c_elem:
@@ -793,18 +735,22 @@ class ReducedModel:
         O = np.zeros((len(pairs), 3))
         O[sampled] = 0.5 * (frames.c[pairs[sampled, 0]] + frames.c[pairs[sampled, 1]])
         slot_sub = self.sub_index_of_domain[self.vertex_domain[self.iface[self.c_elem]]]    # (n_c, 4)
-        for k, dom in enumerate(self.subspace):
-            e_idx, a_idx = np.nonzero((slot_sub == k) & sampled[:, None])
-            if e_idx.size == 0:
-                continue
-            wq = np.where(pairs[e_idx, 0] == k, w[e_idx, 0], w[e_idx, 1])
-            JL[e_idx, a_idx, :, :dom.r] *= wq[:, None, None]
-            if dom.movable:
-                r = dom.r
-                JL[e_idx, a_idx, :, r:r + 3] *= w[e_idx, 2, None, None]
-                x = x_I[self.c_elem[e_idx, a_idx]]
-                lever = w[e_idx, 3, None] * (x - O[e_idx]) - w[e_idx, 2, None] * (frames.c[k] - O[e_idx])
-                JL[e_idx, a_idx, :, r + 3:r + 6] = -skew_batch(lever)
+        e_idx, a_idx = np.nonzero((slot_sub >= 0) & sampled[:, None])
+        k = slot_sub[e_idx, a_idx]
+        r = self.layout.r[k]
+        wq = np.where(pairs[e_idx, 0] == k, w[e_idx, 0], w[e_idx, 1])
+        col = np.arange(JL.shape[3])
+        movable = self.layout.movable[k]
+        lin = movable[:, None] & (col >= r[:, None]) & (col < r[:, None] + 3)
+        scale = np.where(col < r[:, None], wq[:, None], np.where(lin, w[e_idx, 2, None], 1.0))
+        JL[e_idx, a_idx] *= scale[:, None, :]
+        m = np.flatnonzero(movable)
+        e_m, a_m, k_m = e_idx[m], a_idx[m], k[m]
+        x = x_I[self.c_elem[e_m, a_m]]
+        lever = w[e_m, 3, None] * (x - O[e_m]) - w[e_m, 2, None] * (frames.c[k_m] - O[e_m])
+        ang = r[m, None] + 3 + np.arange(3)                      # (m, 3) torque columns
+        # JL[e, a, i, r + 3 + j] = -skew(lever)[i, j]; advanced indices first: (m, j, i).
+        JL[e_m[:, None], a_m[:, None], :, ang] = -skew_batch(lever).transpose(0, 2, 1)
         return JL
 
     def _coupling_full_block(self, K_c):
@@ -823,26 +769,27 @@ class ReducedModel:
         for a free domain, whose basis is mass-orthogonal to translations) and no torque
         about the mass centre.
         """
+        L = self.layout
         Fext = np.zeros(self.n_gen)
         loaded, f_loaded = sparse_loads(f_ext)
-        dom_of = self.vertex_domain[loaded]
         g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k]
-            R = frames.R[k]
-            Fext[o:o + dom.r] = dom.mass_moment.T @ (R.T @ g)
-            if dom.movable:
-                Fext[o + dom.r:o + dom.r + 3] = dom.total_mass * g
-            ids = loaded[dom_of == dom.index]
-            if ids.size == 0:
-                continue
-            loc = self.vertex_local[ids]
-            fk = f_loaded[dom_of == dom.index]
-            Fext[o:o + dom.r] += np.einsum("lia,li->a", dom.U3[loc], fk @ R)
-            if dom.movable:
-                x = self._domain_world(k, loc, q, frames)
-                Fext[o + dom.r:o + dom.r + 3] += fk.sum(0)
-                Fext[o + dom.r + 3:o + dom.r + 6] = cross(x - frames.c[k], fk).sum(0)
+        modal = np.einsum("dia,di->da", L.mass_moment, np.einsum("dji,j->di", frames.R, g))
+        force = np.zeros((L.D, 3))
+        torque = np.zeros((L.D, 3))
+        rows = L.vertex_row[loaded]
+        sub = rows >= 0
+        if sub.any():
+            rows, fk = rows[sub], f_loaded[sub]
+            k = L.row_domain[rows]
+            local = np.einsum("li,lij->lj", fk, frames.R[k])             # R^T f per vertex
+            np.add.at(modal, k, np.einsum("lia,li->la", L.U[rows], local))
+            x = self.positions_of(loaded[sub], q, frames)
+            np.add.at(force, k, fk)
+            np.add.at(torque, k, cross(x - frames.c[k], fk))
+        Fext[L.q_index[L.mask]] = modal[L.mask]
+        mv = L.movers
+        Fext[L.lin_index] = L.total_mass[mv, None] * g + force[mv]
+        Fext[L.ang_index] = torque[mv]
         if self.F:
             Fext[self.S:] = self._ff_mass * g[self._ff_axis]
             dof = self.ff_pattern.free_dof[3 * loaded[:, None] + np.arange(3)]     # (k, 3), -1: not full-space
@@ -854,58 +801,52 @@ class ReducedModel:
         the rotation exp(dt w) R it will have after the step: the angular rows are in
         momentum form I(t + dt) w' = I(t) w + dt tau, which conserves angular momentum
         where an explicit gyroscopic term -w x I w gains it."""
+        L = self.layout
+        mv = L.movers
         M = np.zeros((self.S, self.S))
-        for k, dom in enumerate(self.subspace):
-            o = self.sub_offsets[k]
-            M[o:o + dom.r, o:o + dom.r] = np.eye(dom.r)
-            if dom.movable:
-                R = exp_so3(self.dt * frames.w[k]) @ frames.R[k] if predicted else frames.R[k]
-                M[o + dom.r:o + dom.r + 3, o + dom.r:o + dom.r + 3] = dom.total_mass * np.eye(3)
-                M[o + dom.r + 3:o + dom.r + 6, o + dom.r + 3:o + dom.r + 6] = R @ self._inertia(k, self.q[k]) @ R.T
+        modal = L.q_index[L.mask]
+        M[modal, modal] = 1.0
+        M[L.lin_index, L.lin_index] = L.total_mass[mv, None]
+        R = L.predicted_rotations(frames.R[mv], frames.w[mv], self.dt) if predicted else frames.R[mv]
+        M[L.ang_index[:, :, None], L.ang_index[:, None, :]] = R @ L.inertia(self.q)[mv] @ R.transpose(0, 2, 1)
         return M
 
     def _fictitious_matrices(self, frames):
-        """Coriolis C (S, S) and centrifugal stiffness K_cf (S, S) on the q rows, block-diagonal
-        per movable domain at the step start (omega = R^T w): U^T f_fc = C qd + K_cf q + (terms
-        free of q and qd), C[a, b] = 2 W[a, b] . omega (skew, W is antisymmetric in a, b) and
-        K_cf = |omega|^2 I - omega^T B2 omega (symmetric positive semi-definite)."""
-        C = np.zeros((self.S, self.S))
-        Kc = np.zeros((self.S, self.S))
-        for k, dom in enumerate(self.subspace):
-            if not dom.movable:
-                continue
-            o, r = self.sub_offsets[k], dom.r
-            omega = frames.R[k].T @ frames.w[k]
-            t = dom.tensors
-            C[o:o + r, o:o + r] = 2.0 * np.einsum("abk,k->ab", t.W, omega)
-            Kc[o:o + r, o:o + r] = float(omega @ omega) * np.eye(r) - np.einsum("i,abij,j->ab", omega, t.B2, omega)
+        """Coriolis C and centrifugal stiffness K_cf (D, r_max, r_max) on each domain's q
+        rows at the step start (omega = R^T w; zero for a fixed domain): U^T f_fc = C qd +
+        K_cf q + (terms free of q and qd), C[a, b] = 2 W[a, b] . omega (skew, W is
+        antisymmetric in a, b) and K_cf = |omega|^2 I - omega^T B2 omega (symmetric positive
+        semi-definite). Padded rows and columns are zero."""
+        L = self.layout
+        omega = np.einsum("dji,dj->di", frames.R, frames.w) * L.movable[:, None]
+        C = 2.0 * np.einsum("dabk,dk->dab", L.W, omega)
+        eye = L.mask[:, :, None] & np.eye(L.r_max, dtype=bool)
+        Kc = ((omega * omega).sum(1)[:, None, None] * eye * L.movable[:, None, None]
+              - np.einsum("di,dabij,dj->dab", omega, L.B2, omega))
         return C, Kc
 
     def _modal_coriolis_rotate(self, C, Q):
         """Exact flow of qd' = C qd over dt on the q rows (Mgen is I there): qd <- exp(dt C) qd,
         a rotation because C is skew, so the Coriolis force does no work, as in the continuum
-        (explicit Euler multiplies |qd| by sqrt(1 + dt^2 |C|^2) per step)."""
+        (explicit Euler multiplies |qd| by sqrt(1 + dt^2 |C|^2) per step). C (D, r_max, r_max)
+        from _fictitious_matrices; a fixed domain's block is zero, its exp the identity."""
+        L = self.layout
         Q = Q.copy()
-        for k, dom in enumerate(self.subspace):
-            if dom.movable:
-                o, r = self.sub_offsets[k], dom.r
-                Q[o:o + r] = sla.expm(self.dt * C[o:o + r, o:o + r]) @ Q[o:o + r]
+        qd = np.einsum("dab,db->da", sla.expm(self.dt * C), L.gather(Q))
+        Q[L.q_index[L.mask]] = qd[L.mask]
         return Q
 
     def _explicit_terms(self, frames, q, qd, coriolis=True):
         """Fictitious forces (q rows) at the step start; the gyroscopic term lives in the
         momentum form of the angular rows (see _mass_blocks). coriolis=False leaves out the
         Coriolis term (the implicit treatment rotates qd instead)."""
+        L = self.layout
         F = np.zeros(self.n_gen)
-        for k, dom in enumerate(self.subspace):
-            if not dom.movable:
-                continue
-            o = self.sub_offsets[k]
-            R = frames.R[k]
-            omega = R.T @ frames.w[k]
-            alpha = R.T @ (frames.w[k] - frames.w_prev[k]) / self.dt
-            F[o:o + dom.r] = fictitious_forces(dom.tensors, q[k], qd[k] if coriolis else np.zeros_like(qd[k]),
-                                               omega, alpha)
+        omega = np.einsum("dji,dj->di", frames.R, frames.w)
+        alpha = np.einsum("dji,dj->di", frames.R, frames.w - frames.w_prev) / self.dt
+        f = fictitious_forces(L, q, qd if coriolis else np.zeros_like(qd), omega, alpha)
+        rows = L.mask & L.movable[:, None]
+        F[L.q_index[rows]] = f[rows]
         return F
 
     # ------------------------------------------------------------------ linear algebra
@@ -1004,38 +945,44 @@ class ReducedModel:
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         blocks = []                                          # (corner rows, columns, values (s, c))
-        dom_of = self.vertex_domain[verts]
-        for i, (kind, k) in enumerate(self.domain_kind):
-            sel = np.flatnonzero(dom_of == i)
-            if sel.size == 0:
-                continue
-            n = normals[sel] * weights[sel, None]
-            if kind == "sub":
-                dom = self.subspace[k]
-                o = self.sub_offsets[k]
-                loc = self.vertex_local[verts[sel]]
-                # n^T R U_l = (R^T n)^T U_l: one contraction over the (s, 3, r) rows of U.
-                blocks.append((sel, o + np.arange(dom.r), np.einsum("li,lib->lb", n @ self.frames.R[k], dom.U3[loc])))
-                if dom.movable:
-                    blocks.append((sel, o + dom.r + np.arange(6),
-                                   np.hstack([n, cross(xv[sel] - self.frames.c[k], n)])))
-            else:
-                dofs = self.full_dof_of_vertex[verts[sel]]
-                ok = dofs >= 0
-                blocks.append((sel[ok], self.S + 3 * dofs[ok, None] + np.arange(3), n[ok]))
+        L = self.layout
+        vrow = L.vertex_row[verts]
+        n_w = normals * weights[:, None]
+        sel = np.flatnonzero(vrow >= 0)
+        if sel.size:
+            # n^T R U_l = (R^T n)^T U_l per corner, into its domain's modal columns (padding
+            # columns dropped); a movable domain adds [n, (x - c) x n] on its frame's columns.
+            k = L.row_domain[vrow[sel]]
+            n = n_w[sel]
+            vals = np.einsum("li,lib->lb", np.einsum("lj,lji->li", n, self.frames.R[k]), L.U[vrow[sel]])
+            ok = L.mask[k]
+            blocks.append((np.broadcast_to(sel[:, None], ok.shape)[ok], L.q_index[k][ok], vals[ok]))
+            mover = np.full(L.D, -1, dtype=np.int64)
+            mover[L.movers] = np.arange(len(L.movers))
+            m = mover[k] >= 0
+            if m.any():
+                cols = np.hstack([L.lin_index, L.ang_index])[mover[k[m]]]          # (s, 6)
+                frame_vals = np.hstack([n[m], cross(xv[sel[m]] - self.frames.c[k[m]], n[m])])
+                blocks.append((np.repeat(sel[m], 6), cols.ravel(), frame_vals.ravel()))
+        full = np.flatnonzero(vrow < 0)
+        if full.size:
+            dofs = self.full_dof_of_vertex[verts[full]]
+            ok = dofs >= 0
+            blocks.append((np.repeat(full[ok], 3), (self.S + 3 * dofs[ok, None] + np.arange(3)).ravel(),
+                           n_w[full[ok]].ravel()))
         if self.F:
             # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
             # (duplicates, a face's corners, are summed on construction).
             row_of = np.searchsorted(starts, np.arange(len(group)), side="right") - 1
-            r_idx = np.concatenate([np.repeat(row_of[sel], vals.shape[1]) for sel, _, vals in blocks])
-            c_idx = np.concatenate([np.broadcast_to(cols, vals.shape).ravel() for _, cols, vals in blocks])
-            values = np.concatenate([vals.ravel() for _, _, vals in blocks])
+            r_idx = row_of[np.concatenate([b[0] for b in blocks])]
+            c_idx = np.concatenate([b[1] for b in blocks])
+            values = np.concatenate([b[2] for b in blocks])
             C = sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(len(starts), self.n_gen))
             norms = np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel())
         else:
             Cv = np.zeros((len(verts), self.n_gen))             # one row per (contact, corner)
-            for sel, cols, vals in blocks:
-                Cv[sel[:, None], cols] = vals
+            for r_idx, c_idx, vals in blocks:                   # at most three blocks (kinds of rows)
+                Cv[r_idx, c_idx] = vals
             C = Cv if len(starts) == len(group) else np.add.reduceat(Cv, starts, axis=0)
             C *= self.dt
             norms = np.linalg.norm(C, axis=1)
@@ -1113,7 +1060,10 @@ class ReducedModel:
         if implicit:
             # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
             # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
-            D = (D[0] - dt * centrifugal,) + D[1:]
+            ii, jj, valid = self._modal_blocks()
+            D0 = D[0].copy()
+            D0[ii, jj] -= dt * centrifugal[valid]
+            D = (D0,) + D[1:]
         Fn = self._external(f_ext, gravity, self.frames, self.q) + \
             self._explicit_terms(self.frames, self.q, self.qd, coriolis=not implicit)
         if gm is not None:
@@ -1239,10 +1189,8 @@ class ReducedModel:
         b = p0 + dt * (Fn - G)
         Qn = np.linalg.solve(M_ss, p0)         # the step-start velocities the paper freezes
         rigid = np.zeros(self.S, dtype=bool)
-        for k, dom in enumerate(self.subspace):
-            if dom.movable:
-                o = self.sub_offsets[k] + dom.r
-                rigid[o:o + 6] = True
+        rigid[self.layout.lin_index] = True
+        rigid[self.layout.ang_index] = True
         Q = Qn.copy()
         rr, dd = np.flatnonzero(rigid), np.flatnonzero(~rigid)
         if rr.size:
@@ -1276,7 +1224,7 @@ class ReducedModel:
         """((G, K_ss, K_sI, K_ff, energy, J, x_I), timing) of _evaluate at the current state,
         computed once per state: the cache holds the state objects it was computed from
         (every step and set_state replace them) and is dropped when a step takes it."""
-        state = (self.q, *self.q, self.frames, self.x_full)
+        state = (self.q, self.frames, self.x_full)
         version = getattr(self, "_cut_version", 0)
         c = getattr(self, "_start_eval", None)
         if (c is None or c[3] != version or len(c[0]) != len(state)
@@ -1306,28 +1254,27 @@ class ReducedModel:
         with np.errstate(all="ignore"):
             # x_full / v_full hold every vertex but only full-space rows are state: checking
             # them on a model without full-space domains was a third of this measure.
-            finite = bool(all(np.isfinite(q).all() and np.isfinite(v).all() for q, v in zip(self.q, self.qd))
+            finite = bool(np.isfinite(self.q).all() and np.isfinite(self.qd).all()
                           and np.isfinite(fr.c).all() and np.isfinite(fr.R).all() and np.isfinite(fr.v).all()
                           and np.isfinite(fr.w).all()
                           and (not self.F or (np.isfinite(self.x_full).all() and np.isfinite(self.v_full).all())))
             if not finite:
                 return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
-            kinetic, grav, speed = 0.0, 0.0, 0.0
-            for k, dom in enumerate(self.subspace):
-                q, qd = self.q[k], self.qd[k]
-                rho, sigma = self._guard_radii(k)
-                kinetic += 0.5 * float(qd @ qd)
-                if dom.movable:
-                    w = fr.R[k].T @ fr.w[k]
-                    kinetic += (0.5 * dom.total_mass * float(fr.v[k] @ fr.v[k])
-                                + 0.5 * float(w @ self._inertia(k, q) @ w)
-                                + float(w @ (qd @ (q @ dom.tensors.W.reshape(dom.r, -1)).reshape(dom.r, 3))))
-                    speed = max(speed, float(np.linalg.norm(fr.v[k]) + np.linalg.norm(fr.w[k])
-                                             * (rho + sigma * np.linalg.norm(q)) + sigma * np.linalg.norm(qd)))
-                else:
-                    speed = max(speed, sigma * float(np.linalg.norm(qd)))
-                moment = dom.total_mass * fr.c[k] + fr.R[k] @ (self._guard_mass_r[k] + dom.mass_moment @ q)
-                grav -= float(moment @ g)
+            L = self.layout
+            q, qd = self.q, self.qd
+            mv = L.movable
+            w = np.einsum("dji,dj->di", fr.R, fr.w)
+            spin = (0.5 * L.total_mass * (fr.v * fr.v).sum(1)
+                    + 0.5 * np.einsum("di,dij,dj->d", w, L.inertia(q), w)
+                    + np.einsum("da,db,dabk,dk->d", q, qd, L.W, w))
+            kinetic = 0.5 * float((qd * qd).sum()) + float(spin[mv].sum())
+            qn, qdn = np.sqrt((q * q).sum(1)), np.sqrt((qd * qd).sum(1))
+            speeds = np.where(mv, np.sqrt((fr.v * fr.v).sum(1)) + np.sqrt((fr.w * fr.w).sum(1))
+                              * (L.rho + L.sigma * qn) + L.sigma * qdn, L.sigma * qdn)
+            speed = float(speeds.max()) if len(speeds) else 0.0
+            moment = (L.total_mass[:, None] * fr.c
+                      + np.einsum("dij,dj->di", fr.R, L.mass_r + np.einsum("dia,da->di", L.mass_moment, q)))
+            grav = -float((moment @ g).sum())
             if self.F:
                 m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
                 kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
@@ -1345,7 +1292,7 @@ class ReducedModel:
         """(total mass M, mass-centre velocity V (3,)) for the guard's energy projection;
         V = 0 for a body held by pins (its momentum is not conserved, scale all motion)."""
         gm = self._global_motion()
-        m = sum(dom.total_mass for dom in self.subspace) + float(self.vertex_mass[self.is_full_vertex].sum())
+        m = float(self.layout.total_mass.sum()) + float(self.vertex_mass[self.is_full_vertex].sum())
         return m, (gm[1].copy() if gm is not None else np.zeros(3))
 
     def scale_relative_motion(self, s, V):
@@ -1361,7 +1308,7 @@ class ReducedModel:
         fr.w = np.where(mv[:, None], s * fr.w, fr.w)
         # The Euler force reads (w - w_prev) / dt: scale both so the projection is no jolt.
         fr.w_prev = np.where(mv[:, None], s * fr.w_prev, fr.w_prev)
-        self.qd = [s * qd for qd in self.qd]
+        self.qd = s * self.qd
         if self.F:
             self.v_full = np.where(self.is_full_vertex[:, None], V + s * (self.v_full - V), 0.0)
             self.v_full[self.body.pinned] = 0.0
@@ -1381,7 +1328,7 @@ class ReducedModel:
         from ..state_measure import inverted_tets
         from ..rotations import exp_so3, quat_from_matrix
         q0, qd0, fr0, xf0 = self.q, self.qd, self.frames, self.x_full
-        m = np.array([dom.total_mass for dom in self.subspace])
+        m = self.layout.total_mass
         cbar = np.array([dom.cbar for dom in self.subspace]).reshape(-1, 3)
         if len(self.body.pinned) or not self.movable.all():
             R_t, c_mean, cbar_mean = np.eye(3), np.zeros(3), np.zeros(3)
@@ -1405,7 +1352,7 @@ class ReducedModel:
                 fr.R[k] = R_t @ exp_so3(s * rotvec[k])
             xf = np.where(self.is_full_vertex[:, None], x_t + s * (xf0 - x_t), xf0)
             xf[self.body.pinned] = xf0[self.body.pinned]
-            return [s * q for q in q0], fr, xf
+            return s * q0, fr, xf
 
         def inverted(s):
             q, fr, xf = at(s)
@@ -1420,17 +1367,9 @@ class ReducedModel:
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if not inverted(mid) else (lo, mid)
         self.q, self.frames, self.x_full = at(lo)
-        self.qd = [lo * qd for qd in qd0]
+        self.qd = lo * qd0
         self._start_eval = None
         return lo
-
-    def _guard_radii(self, k):
-        """(largest rest radius, largest per-vertex basis norm) of subspace domain k, cached."""
-        if not hasattr(self, "_guard_rs"):
-            self._guard_rs = [(float(np.linalg.norm(d.r_local, axis=1).max()),
-                               float(np.sqrt((d.U3 ** 2).sum(axis=(1, 2)).max()))) for d in self.subspace]
-            self._guard_mass_r = [d.mass @ d.r_local for d in self.subspace]
-        return self._guard_rs[k]
 
     def _guard_inverted(self):
         """Inverted elements among those the forces evaluate, without rebuilding vertices
@@ -1438,26 +1377,21 @@ class ReducedModel:
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
         from ..state_measure import inverted_tets
-        n = 0
-        for k, dom in enumerate(self.subspace):
-            if getattr(dom, "sampled", None) is not None and len(dom.sampled.elements):
-                G = dom.sampled.G
-                F = (G.reshape(-1, G.shape[2]) @ self.q[k]).reshape(-1, 9)
-                n += int(np.count_nonzero(~(_det_identity_plus(F) > 0)))      # NaN counts
+        n = self.samples.inverted(self.q) if self.samples is not None else 0
         x_I = None
         if self.coupling_kind == "element":
             c = getattr(self, "_start_eval", None)
-            if c is not None and all(a is b for a, b in zip(c[0], (self.q, *self.q, self.frames, self.x_full))):
+            if c is not None and all(a is b for a, b in zip(c[0], (self.q, self.frames, self.x_full))):
                 x_I = c[1][6]
-        ids, local, plan = self._guard_tets(coupling=x_I is None)
+        ids, local = self._guard_tets(coupling=x_I is None)
         if len(ids):
-            n += inverted_tets(self._planned_positions(ids, plan), local)
+            n += inverted_tets(self.positions_of(ids), local)
         if x_I is not None and len(self.c_elem):
             n += inverted_tets(x_I, self.c_elem)
         return n
 
     def _guard_tets(self, coupling=True):
-        """(vertex ids (k,), tets (m, 4) into them, their output plan) the guard checks for
+        """(vertex ids (k,), tets (m, 4) into them) the guard checks for
         inversion from vertex positions: the elements the forces evaluate that are neither
         cubature samples (_guard_inverted reads those from q) nor, unless `coupling`,
         coupling elements."""
@@ -1467,7 +1401,7 @@ class ReducedModel:
                 fm = dom.forces
                 if getattr(fm, "tets", None) is None or len(fm.tets) == 0:
                     continue
-                if getattr(dom, "sampled", None) is None:
+                if self.samples is None:
                     parts.append(dom.vertices[fm.tets])
             if self.coupling_kind == "element" and coupling:
                 parts.append(self.body.tets[self.c_tets])
@@ -1477,7 +1411,7 @@ class ReducedModel:
             ids, local = np.unique(tets, return_inverse=True)
             if not hasattr(self, "_guard_tet_list"):
                 self._guard_tet_list = {}
-            self._guard_tet_list[coupling] = (ids, local.reshape(tets.shape), self._output_plan(ids))
+            self._guard_tet_list[coupling] = (ids, local.reshape(tets.shape))
         return self._guard_tet_list[coupling]
 
     def domain_poses(self):

@@ -153,3 +153,96 @@ def contributions(G, volume, Q, kind_id, params, want_hessian, project, out):
                     for a in range(9):
                         acc += G[e, a, b] * P[a // 3, a % 3]
                     out[t, b, e] = volume[e] * acc
+
+
+@njit(cache=True, parallel=True)
+def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, WG_out, CG_out):
+    """sampled_kernel for every domain in one pass: samples stacked per domain and padded
+    with zero-weight samples (a padded sample is skipped and its outputs are zero).
+
+    G (D, s, 9, r_max); wV (D, s); q (D, r_max); energy_out (D, s); g_out (D, s, r_max);
+    WG_out, CG_out (D, s, 9, r_max): domain k's K = sum_s WG[k, s]^T CG[k, s].
+    """
+    D, s_count, _, r = G.shape
+    n_chunks_d = (s_count + _CHUNK - 1) // _CHUNK
+    for job in prange(D * n_chunks_d):
+        d = job // n_chunks_d
+        c = job % n_chunks_d
+        F = np.empty((3, 3))
+        P = np.empty((3, 3))
+        C = np.empty((9, 9))
+        work = np.empty(WORK_LEN)
+        for s in range(c * _CHUNK, min(s_count, (c + 1) * _CHUNK)):
+            w = wV[d, s]
+            if w == 0.0:
+                energy_out[d, s] = 0.0
+                for b in range(r):
+                    g_out[d, s, b] = 0.0
+                if want_hessian:
+                    for a in range(9):
+                        for b in range(r):
+                            WG_out[d, s, a, b] = 0.0
+                            CG_out[d, s, a, b] = 0.0
+                continue
+            _deformation_gradient(G[d, s], q[d], F)
+            psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
+            energy_out[d, s] = w * psi
+            for b in range(r):
+                acc = 0.0
+                for a in range(9):
+                    acc += G[d, s, a, b] * P[a // 3, a % 3]
+                g_out[d, s, b] = w * acc
+            if want_hessian:
+                for a in range(9):
+                    for b in range(r):
+                        acc = 0.0
+                        for k in range(9):
+                            acc += C[a, k] * G[d, s, k, b]
+                        CG_out[d, s, a, b] = acc
+                        WG_out[d, s, a, b] = w * G[d, s, a, b]
+
+
+class StackedSamples:
+    """Every domain's cubature samples in one array, for one kernel call per evaluation.
+
+    G (D, s_max, 9, r_max) and wV (D, s_max) (weight times rest volume), padded with
+    zero-weight samples and zero columns; the buffers are reused from step to step.
+    """
+
+    def __init__(self, sampled, r_max, material):
+        D = len(sampled)
+        s_max = max([sm.n_samples for sm in sampled] + [1])
+        self.G = np.zeros((D, s_max, 9, r_max))
+        self.wV = np.zeros((D, s_max))
+        self.valid = np.zeros((D, s_max), dtype=bool)
+        for k, sm in enumerate(sampled):             # once per build
+            n, _, rk = sm.G.shape
+            self.G[k, :n, :, :rk] = sm.G
+            self.wV[k, :n] = sm.weights * sm.volume
+            self.valid[k, :n] = True
+        self.material = material
+        self.energy = np.empty((D, s_max))
+        self.g = np.empty((D, s_max, r_max))
+        self.WG = np.empty((D, s_max, 9, r_max))
+        self.CG = np.empty((D, s_max, 9, r_max))
+
+    def evaluate(self, q, want_hessian=True):
+        """(energy (D,), g (D, r_max), K (D, r_max, r_max) or None) at q (D, r_max)."""
+        D, s, _, r = self.G.shape
+        m = self.material
+        sampled_buffers = (self.WG, self.CG) if want_hessian else (np.empty((D, 1, 9, r)),) * 2
+        stacked_kernel(self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
+                       self.energy, self.g, *sampled_buffers)
+        energy, g = self.energy.sum(1), self.g.sum(1)
+        if not want_hessian:
+            return energy, g, None
+        K = np.matmul(self.WG.reshape(D, s * 9, r).transpose(0, 2, 1), self.CG.reshape(D, s * 9, r))
+        return energy, g, K
+
+    def inverted(self, q):
+        """Samples with det F <= 0 (or not finite) at q (D, r_max): the guard's count."""
+        F = np.einsum("dsab,db->dsa", self.G, q)[self.valid]
+        F[:, [0, 4, 8]] += 1.0
+        det = (F[:, 0] * (F[:, 4] * F[:, 8] - F[:, 5] * F[:, 7]) - F[:, 1] * (F[:, 3] * F[:, 8] - F[:, 5] * F[:, 6])
+               + F[:, 2] * (F[:, 3] * F[:, 7] - F[:, 4] * F[:, 6]))
+        return int(np.count_nonzero(~(det > 0)))

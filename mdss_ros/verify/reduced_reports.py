@@ -224,9 +224,9 @@ def copy_reduced_state(src, dst, at_rest=True):
     q, qd = [], []
     for ds, dd, qs, qds in zip(ms.subspace, md.subspace, ms.q, ms.qd):
         m = np.repeat(dd.mass, 3)
-        q.append(dd.U.T @ (m * (ds.U @ qs)))
-        qd.append(np.zeros(dd.r) if at_rest else dd.U.T @ (m * (ds.U @ qds)))
-    md.q, md.qd = q, qd
+        q.append(dd.U.T @ (m * (ds.U @ qs[:ds.r])))
+        qd.append(np.zeros(dd.r) if at_rest else dd.U.T @ (m * (ds.U @ qds[:ds.r])))
+    md.q, md.qd = md.layout.pad(q), md.layout.pad(qd)
     md.frames = ms.frames.copy()
     if at_rest:
         for a in (md.frames.v, md.frames.w, md.frames.w_prev):
