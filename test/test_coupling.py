@@ -2,7 +2,7 @@
 pair GEMMs) against the direct per-element-pair product, on random data."""
 import numpy as np
 
-from mdss_ros.reduced.coupling import TwoPhaseProjection, as_slice, coupling_entries, project_coupling
+from mdss_ros.reduced.coupling import TwoPhaseProjection, coupling_entries, project_coupling
 
 
 def _random_coupling(seed, n_I=40, n_c=60, sizes=(7, 10, 4)):
@@ -60,11 +60,6 @@ def test_coupling_entries_group_by_domain_pair():
     for v in range(len(sub)):
         own = vertex_entries[v][vertex_entries[v] >= 0]
         assert set(own) == set(np.flatnonzero(ev == v))
-
-
-def test_as_slice():
-    assert as_slice(np.array([3, 4, 5])) == slice(3, 6)
-    assert isinstance(as_slice(np.array([3, 5])), np.ndarray)
 
 
 def test_two_phase_plus_full_block_equals_the_per_element_product_beside_full_space_vertices():

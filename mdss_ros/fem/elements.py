@@ -77,14 +77,17 @@ def element_kernel(x, tets, grads, volume, kind_id, params, want_hessian, projec
     Work arrays are allocated once per chunk of elements, not per element.
     """
     m = tets.shape[0]
-    n_chunks = (m + _CHUNK - 1) // _CHUNK
+    # Small sets (coupling elements: a few thousand) in smaller chunks, so both threads
+    # get a balanced share; large meshes keep the long chunks.
+    chunk = _CHUNK if m > 64 * _CHUNK else _CHUNK // 4
+    n_chunks = (m + chunk - 1) // chunk
     for c in prange(n_chunks):
         F = np.empty((3, 3))
         P = np.empty((3, 3))
         C = np.empty((9, 9))
         T = np.empty((9, 4, 3))
         work = np.empty(WORK_LEN)
-        for e in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
+        for e in range(c * chunk, min(m, (c + 1) * chunk)):
             for i in range(3):
                 for j in range(3):
                     s = 0.0

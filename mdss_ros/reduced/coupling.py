@@ -290,7 +290,9 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
     KJ[entry (a, l)] = sum of w_e K_e[a, b] J_b over the elements at a and their vertices b
     in domain l; f_sum[a] = sum of w_e f_e[a] over the elements at a.
     w (n_c,) element weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max);
-    KJ (n_e, 3, s_max), f_sum (n_I, 3) are overwritten."""
+    KJ (n_e, 3, s_max), f_sum (n_I, 3) are overwritten. (A flat KJ with each entry only
+    s_l wide, tried to save phase 2 a copy, made this kernel 2.4x slower: the fixed
+    s_max-wide rows vectorise.)"""
     n_I = ptr.shape[0] - 1
     k = elem.shape[1]
     s_max = J.shape[2]
@@ -325,58 +327,82 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
         f_sum[la, 2] = f2
 
 
+@njit(cache=True, parallel=True)
+def gather_entry_J(J, entry_vertex, JE):
+    """JE[en] = J of entry en's vertex (n_e, 3, s_max): entries are grouped by domain pair,
+    so each pair's J rows become one contiguous (3 n, s_max) matrix."""
+    for en in prange(entry_vertex.shape[0]):
+        JE[en] = J[entry_vertex[en]]
+
+
+@njit(cache=True, parallel=True)
+def project_pairs(groups, sizes, offsets, JE, KJ, A):
+    """Phase 2: A[k, l] += JE_kl^T KJ_kl for every domain pair (k, l) that shares
+    coupling elements, one BLAS GEMM each on s_max-wide rows (padding columns are zero).
+    groups (n_g, 3): k, l and the pair's first entry; the next row's first entry (or n_e)
+    ends it."""
+    n_e, _, s_max = JE.shape
+    # Parallel over pairs: each writes only its own block (k, l), so the result does not
+    # depend on the thread schedule. Each GEMM runs single-threaded BLAS (threads.py).
+    for g in prange(groups.shape[0]):
+        k, l, e0 = groups[g, 0], groups[g, 1], groups[g, 2]
+        e1 = groups[g + 1, 2] if g + 1 < groups.shape[0] else n_e
+        sk, sl = sizes[k], sizes[l]
+        P = np.dot(JE[e0:e1].reshape(3 * (e1 - e0), s_max).T, KJ[e0:e1].reshape(3 * (e1 - e0), s_max))
+        A[offsets[k]:offsets[k] + sk, offsets[l]:offsets[l] + sl] += P[:sk, :sl]
+
+
+@njit(cache=True)
+def project_sums(J, f_sum, row_dom, sizes, offsets, G):
+    """G[domain k of a] += J_a^T f_sum[a] for every subspace interface vertex a (row_dom < 0:
+    full-space, skipped)."""
+    for la in range(J.shape[0]):
+        k = row_dom[la]
+        if k < 0:
+            continue
+        o = offsets[k]
+        for t in range(sizes[k]):
+            G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
+
+
 class TwoPhaseProjection:
     """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
     phases: per-vertex K J and force sums (accumulate_KJ), then one GEMM per domain pair,
-    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, and one GEMV per domain for G. About a
-    third of the flops of the per-element-pair product, and the O(n_I s^2) part runs in
-    BLAS on contiguous blocks: entries are stored grouped by domain pair, and when the
-    interface vertices are ordered by domain, a domain's J rows are one slice too."""
+    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l} (project_pairs), and J^T f per vertex
+    (project_sums). About a third of the flops of the per-element-pair product, and the
+    O(n_I s^2) part runs in BLAS on contiguous blocks. All of it is compiled: no Python
+    loop over domains or domain pairs."""
 
     def __init__(self, elem, vertex_sub, sizes, offsets):
         self.elem = elem
         self.entry_vertex, entry_dom, self.pair_entry, self.vertex_entries = coupling_entries(elem, vertex_sub)
         self.ptr, self.inc = vertex_incidence(elem, len(vertex_sub))
-        self.sizes, self.offsets = sizes, offsets
-        self.domain_rows = []                  # per domain: its interface vertices (slice if contiguous)
-        for k in range(len(sizes)):
-            rows = np.flatnonzero(vertex_sub == k)
-            self.domain_rows.append(as_slice(rows))
-        self.groups = []                       # (k, l, first entry, end entry, J rows of the entries)
-        group_key = vertex_sub[self.entry_vertex] * len(sizes) + entry_dom
-        bounds = np.flatnonzero(np.diff(group_key)) + 1
-        for e0, e1 in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [len(group_key)]])):
-            if e1 <= e0:
-                continue
-            k, l = divmod(int(group_key[e0]), len(sizes))
-            self.groups.append((k, l, int(e0), int(e1), as_slice(self.entry_vertex[e0:e1])))
-        self._KJ = None
+        self.sizes = np.asarray(sizes, dtype=np.int64)
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.row_dom = np.asarray(vertex_sub, dtype=np.int64)
+        D = len(sizes)
+        # Entries are ordered by (domain of a, l, a): each domain pair's entries are one run.
+        n_e = len(self.entry_vertex)
+        k_e = self.row_dom[self.entry_vertex]
+        key = k_e * D + entry_dom
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if n_e else np.zeros(0, np.int64)
+        self.groups = np.stack([k_e[starts], entry_dom[starts], starts], axis=1).astype(np.int64)
+        self._buffers = None
 
     def add(self, f_e, K_e, J, G, A_ss, weights=None):
         """f_e (n_c, k, 3), K_e (n_c, 3k, 3k) world-frame element forces and stiffness,
         J (n_I, 3, s_max), weights (n_c,) or None (all 1); G (S,) and A_ss (S, S) are
         added to (G None: forces not projected). Only subspace-subspace vertex pairs: with
         full-space vertices, project_forces and project_coupling_full do the rest."""
-        s_max = J.shape[2]
         if weights is None:
             weights = np.ones(len(self.elem))
-        if self._KJ is None or self._KJ.shape[2] != s_max:
-            self._KJ = np.empty((len(self.entry_vertex), 3, s_max))
-            self._f_sum = np.empty((len(self.ptr) - 1, 3))
-        KJ, f_sum = self._KJ, self._f_sum
+        shape = (len(self.entry_vertex), 3, J.shape[2])
+        if self._buffers is None or self._buffers[0].shape != shape:
+            self._buffers = (np.empty(shape), np.empty(shape), np.empty((len(self.ptr) - 1, 3)))
+        KJ, JE, f_sum = self._buffers
         accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries,
                       KJ, f_sum)
-        for k, rows in enumerate(self.domain_rows if G is not None else []):
-            sk, ok = self.sizes[k], self.offsets[k]
-            G[ok:ok + sk] += J[rows, :, :sk].reshape(-1, sk).T @ f_sum[rows].ravel()
-        for k, l, e0, e1, rows in self.groups:
-            sk, sl = self.sizes[k], self.sizes[l]
-            ok, ol = self.offsets[k], self.offsets[l]
-            A_ss[ok:ok + sk, ol:ol + sl] += J[rows, :, :sk].reshape(-1, sk).T @ KJ[e0:e1, :, :sl].reshape(-1, sl)
-
-
-def as_slice(ids):
-    """A slice when ids (sorted) are one contiguous range (a view instead of a gather), else ids."""
-    if len(ids) and ids[-1] - ids[0] + 1 == len(ids):
-        return slice(int(ids[0]), int(ids[-1]) + 1)
-    return ids
+        if G is not None:
+            project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
+        gather_entry_J(J, self.entry_vertex, JE)
+        project_pairs(self.groups, self.sizes, self.offsets, JE, KJ, A_ss)
