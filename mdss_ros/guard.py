@@ -67,6 +67,7 @@ import numpy as np
 
 from .errors import MdssError
 from .loads import sparse_loads
+from .step_options import StepOptions
 from .state_measure import Measure, inverted_tets  # noqa: F401  (guard.Measure, guard.inverted_tets)
 
 #: Exceptions a diverging step raises (singular or indefinite systems, SVD of NaN,
@@ -220,22 +221,23 @@ class StabilityGuard:
     def step(self, advance, save, restore, f_app, gravity, step_count):
         """Advance one step of the model's dt through the guard.
 
-        advance(k, n): run sub-step k (1..n) of n with the model's dt already set to dt / n,
-        returning the model's stats; save() -> snapshot and restore(snapshot) cover everything
+        advance(k, n, options): run sub-step k (1..n) of n with these StepOptions (dt / n,
+        and the Newton iterations and fictitious forces of the attempt), returning the
+        model's stats; save() -> snapshot and restore(snapshot) cover everything
         a step changes. f_app (n_verts, 3) are the applied loads (their work is allowed),
         gravity (3,). Returns (model stats, guard report dict).
         """
         s = self.settings
         if not s.enabled:
-            return advance(1, 1), {"stability": "unchecked"}
+            return advance(1, 1, None), {"stability": "unchecked"}
         dt = self.model.dt
         self._gravity = gravity
         self._work = 0.0
         before = self._current(gravity, step_count)
         snap = save()
-        newton = s.newton_iterations if s.newton_iterations > _newton_of(self.model) else None
+        newton = s.newton_iterations if s.newton_iterations > self.model.newton_iterations else None
         # Reduced models that integrate fictitious forces explicitly get them implicit on retries.
-        implicit = getattr(self.model, "fictitious", None) == "explicit"
+        implicit = self.model.fictitious == "explicit"
         ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
             ([(1, newton, True)] if implicit else []) + \
             [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
@@ -364,54 +366,44 @@ class StabilityGuard:
         projection and is judged again (self._projected counts them: (sub-steps, J removed)).
         Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
         model = self.model
-        restore_newton = _set_newton(model, newton) if newton else None
-        if implicit:
-            model.fictitious = "implicit"
+        options = StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None)
         loaded = None if hasattr(model, "guard_measure") else sparse_loads(f_app)     # (ids, forces)
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
         self._work = 0.0
         self._projected = (0, 0.0)
-        try:
-            model.set_dt(dt / n_sub)
-            for k in range(1, n_sub + 1):
-                try:
-                    with np.errstate(all="ignore"):
-                        stats = advance(k, n_sub)
-                except MdssError:
-                    raise
-                except NUMERICAL_ERRORS as err:
-                    v = Verdict(hard=["non-finite"])
-                    self.last_error = f"{type(err).__name__}: {err}"
-                    return {"error": self.last_error}, v, prev
-                after = measure(model, self.tets, gravity, self.settings.inversion)
-                work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
-                             stats.get("external_work") if isinstance(stats, dict) else None,
-                             stats.get("contact_work") if isinstance(stats, dict) else None)
-                v = self.judge(prev, after, work, stats, gravity)
-                if project and v.hard and set(v.hard) <= ENERGY_SIGNS:
-                    # Budget: no energy created by this sub-step (E <= E_before + work); the
-                    # drift check only judges sub-steps that create energy, so this clears it too.
-                    # (a hair below it: landing exactly on it leaves round-off growth, which
-                    # the drift check would judge.)
-                    excess = after.total - (prev.total + work)
-                    removed = project_energy(model, after, excess + 1e-9 * abs(excess) + 1e-12 * after.kinetic)
-                    if removed is not None:
-                        after = measure(model, self.tets, gravity, self.settings.inversion)
-                        v = self.judge(prev, after, work, stats, gravity)
-                        self._projected = (self._projected[0] + 1, self._projected[1] + removed)
-                if v.hard:
-                    return stats, v, after
-                # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
-                verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)), growth=max(verdict.growth, v.growth),
-                                  inverted=v.inverted)
-                self._work += work
-                prev = after
-        finally:
-            model.set_dt(dt)
-            if restore_newton:
-                restore_newton()
-            if implicit:
-                model.fictitious = "explicit"
+        for k in range(1, n_sub + 1):
+            try:
+                with np.errstate(all="ignore"):
+                    stats = advance(k, n_sub, options)
+            except MdssError:
+                raise
+            except NUMERICAL_ERRORS as err:
+                v = Verdict(hard=["non-finite"])
+                self.last_error = f"{type(err).__name__}: {err}"
+                return {"error": self.last_error}, v, prev
+            after = measure(model, self.tets, gravity, self.settings.inversion)
+            work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
+                         stats.get("external_work") if isinstance(stats, dict) else None,
+                         stats.get("contact_work") if isinstance(stats, dict) else None)
+            v = self.judge(prev, after, work, stats, gravity)
+            if project and v.hard and set(v.hard) <= ENERGY_SIGNS:
+                # Budget: no energy created by this sub-step (E <= E_before + work); the
+                # drift check only judges sub-steps that create energy, so this clears it too.
+                # (a hair below it: landing exactly on it leaves round-off growth, which
+                # the drift check would judge.)
+                excess = after.total - (prev.total + work)
+                removed = project_energy(model, after, excess + 1e-9 * abs(excess) + 1e-12 * after.kinetic)
+                if removed is not None:
+                    after = measure(model, self.tets, gravity, self.settings.inversion)
+                    v = self.judge(prev, after, work, stats, gravity)
+                    self._projected = (self._projected[0] + 1, self._projected[1] + removed)
+            if v.hard:
+                return stats, v, after
+            # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
+            verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)), growth=max(verdict.growth, v.growth),
+                              inverted=v.inverted)
+            self._work += work
+            prev = after
         return stats, verdict, prev
 
 
@@ -469,29 +461,6 @@ def _work(f_app, loaded, before, after, contact, model_work=None, contact_work=N
             ids = np.asarray(contact["vertices"])
             w += float((contact["forces"] * (after.x[ids] - before.x[ids])).sum())
     return w
-
-
-def _newton_of(model):
-    """The model's configured Newton iterations per step."""
-    return model.integrator.settings.max_iterations if hasattr(model, "integrator") else model.newton_iterations
-
-
-def _set_newton(model, iterations):
-    """Raise the model's Newton iterations for one attempt; returns the undo."""
-    if hasattr(model, "integrator"):                     # FullSpaceModel
-        s = model.integrator.settings
-        old = s.max_iterations
-        s.max_iterations = max(old, int(iterations))
-
-        def undo():
-            s.max_iterations = old
-        return undo
-    old = model.newton_iterations                        # ReducedModel
-    model.newton_iterations = max(old, int(iterations))
-
-    def undo():
-        model.newton_iterations = old
-    return undo
 
 
 def _action(n_sub, newton, implicit=False, projected=False):

@@ -14,6 +14,7 @@ from .guard import GuardSettings, StabilityGuard
 from .loads import VertexLoads, closest_surface_point, wrench_to_vertex_forces
 from .model_build import build_model
 from .scene import Scene, load_scene
+from .step_options import StepOptions
 from .threads import BlasThreads
 
 
@@ -238,7 +239,7 @@ class Simulator:
             # (the contact then pushes the body out of it along the shortest way).
             self._collider_start[name] = self._collider_targets[name]
         self._collider_step_start = dict(self._collider_start)
-        model_stats, report = self.guard.step(lambda k, n_sub: self._advance(f_app, k, n_sub),
+        model_stats, report = self.guard.step(lambda k, n_sub, options: self._advance(f_app, k, n_sub, options),
                                               self._save, self._restore, f_app, self.gravity,
                                               self.step_count)
         t2 = time.perf_counter()
@@ -250,18 +251,18 @@ class Simulator:
         if embedded:
             self._stats["colliders_not_swept"] = embedded
 
-    def _advance(self, f_app, k, n_sub):
-        """Sub-step k (1..n_sub) of a step; the model's dt is already dt / n_sub. Colliders
+    def _advance(self, f_app, k, n_sub, options=None):
+        """Sub-step k (1..n_sub) of a step, with the guard's StepOptions (dt / n_sub). Colliders
         move to their pose at k / n_sub of the way from the step's start to its target."""
         if not self.colliders:
-            return self.model.step(f_app, self.gravity)
+            return self.model.step(f_app, self.gravity, options=options)
         if n_sub > 1:
             a = k / n_sub
             for name, c in self.colliders.items():
                 (p0, q0), (p1, q1) = self._collider_step_start.get(name, self._collider_targets[name]), \
                     self._collider_targets[name]
                 c.set_pose((1 - a) * p0 + a * p1, (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1))
-        return self._step_with_colliders(f_app)
+        return self._step_with_colliders(f_app, options)
 
     def _save(self):
         """Everything a step changes: the model state and the collider sweep bookkeeping."""
@@ -309,7 +310,7 @@ class Simulator:
         return {"kinetic": kinetic, "elastic": elastic, "gravity": gravity,
                 "total": kinetic + elastic + gravity}
 
-    def _step_with_colliders(self, f_app):
+    def _step_with_colliders(self, f_app, options=None):
         """One step with contact. Colliders that moved more than MAX_COLLIDER_TRAVEL x the
         contact margin since the last step are swept in sub-steps (poses interpolated,
         dt split) so a fast collider cannot pass through the surface between two steps."""
@@ -327,23 +328,20 @@ class Simulator:
             if c.signed_distance(surface)[0].min() < travel + spec["margin"]:
                 moved = max(moved, travel)
         n_sub = int(min(self.MAX_SUBSTEPS, max(1, np.ceil(moved / (self.MAX_COLLIDER_TRAVEL * spec["margin"])))))
-        dt = self.model.dt                       # the step, or a guard sub-step of it
+        options = options or StepOptions()
+        dt = options.dt or self.model.dt         # the step, or a guard sub-step of it
         if n_sub == 1:
-            stats = self.model.step(f_app, self.gravity, contact=spec)
+            stats = self.model.step(f_app, self.gravity, contact=spec, options=options)
         else:
             targets = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
             starts = {name: self._collider_start.get(name, targets[name]) for name in targets}
-            self.model.set_dt(dt / n_sub)
-            try:
-                for k in range(1, n_sub + 1):
-                    a = k / n_sub
-                    for name, c in self.colliders.items():
-                        (p0, q0), (p1, q1) = starts[name], targets[name]
-                        q = (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1)
-                        c.set_pose((1 - a) * p0 + a * p1, q)
-                    stats = self.model.step(f_app, self.gravity, contact=spec)
-            finally:
-                self.model.set_dt(dt)
+            for k in range(1, n_sub + 1):
+                a = k / n_sub
+                for name, c in self.colliders.items():
+                    (p0, q0), (p1, q1) = starts[name], targets[name]
+                    q = (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1)
+                    c.set_pose((1 - a) * p0 + a * p1, q)
+                stats = self.model.step(f_app, self.gravity, contact=spec, options=options.split(dt, n_sub))
             stats = dict(stats, collider_substeps=n_sub)
         self._collider_start = {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()}
         return stats

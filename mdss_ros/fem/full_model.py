@@ -33,17 +33,39 @@ class VertexState:
     def n_dofs(self):
         return self.force_model.n_free
 
-    def step(self, f_ext, gravity=None, contact=None):
+    # No moving frames, hence no fictitious forces (StepOptions.fictitious is ignored).
+    fictitious = None
+
+    @property
+    def newton_iterations(self):
+        """Newton iterations per step as configured (1 for an explicit integrator)."""
+        return getattr(self.integrator.settings, "max_iterations", 1)
+
+    def step(self, f_ext, gravity=None, contact=None, options=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,);
-        contact: see BackwardEuler.step (colliders at their end-of-step poses)."""
+        contact: see BackwardEuler.step (colliders at their end-of-step poses);
+        options: a StepOptions for this step only (dt, Newton iterations)."""
         if isinstance(f_ext, VertexLoads):
             f_ext = f_ext.dense()            # every vertex is an unknown here anyway
         f_ext = np.asarray(f_ext, dtype=np.float64)
         if gravity is not None:
             f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
-        self.x, self.v = self.integrator.step(self.x, self.v, f_ext, contact)
-        self.contact = self.integrator.contact
-        return self.integrator.stats
+        integ = self.integrator
+        settings = getattr(integ, "settings", None)
+        saved = (integ.dt, getattr(settings, "max_iterations", None))
+        if options is not None:
+            if options.dt:
+                integ.dt = float(options.dt)
+            if options.newton_iterations and saved[1] is not None:
+                settings.max_iterations = max(saved[1], int(options.newton_iterations))
+        try:
+            self.x, self.v = integ.step(self.x, self.v, f_ext, contact)
+        finally:
+            integ.dt = saved[0]
+            if saved[1] is not None:
+                settings.max_iterations = saved[1]
+        self.contact = integ.contact
+        return integ.stats
 
     def vertex_positions(self):
         return self.x

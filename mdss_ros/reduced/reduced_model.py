@@ -607,10 +607,11 @@ class ReducedModel:
         if getattr(self, "_iface_basis", None) is None:
             # Basis rows and rest offsets of every interface vertex, gathered once.
             rows = L.vertex_row[self.iface]
-            sub = rows >= 0
-            U = np.where(sub[:, None, None], L.U[np.maximum(rows, 0)], 0.0)
-            r_loc = np.where(sub[:, None], L.r_local[np.maximum(rows, 0)], 0.0)
-            row_dom = np.where(sub, L.row_domain[np.maximum(rows, 0)], -1)
+            sub = np.flatnonzero(rows >= 0)
+            U = np.zeros((len(rows), 3, L.r_max))
+            r_loc = np.zeros((len(rows), 3))
+            row_dom = np.full(len(rows), -1, dtype=np.int64)
+            U[sub], r_loc[sub], row_dom[sub] = L.U[rows[sub]], L.r_local[rows[sub]], L.row_domain[rows[sub]]
             self._iface_basis = (np.ascontiguousarray(U), np.ascontiguousarray(r_loc), row_dom)
         U, r_loc, row_dom = self._iface_basis
         J = np.empty((len(self.iface), 3, self.s_max))
@@ -1027,9 +1028,27 @@ class ReducedModel:
         self._contact_lam, self._contact_rows_seen = lam, rows
         return dQ + corr, lam
 
-    def step(self, f_ext, gravity=None, contact=None):
+    def step(self, f_ext, gravity=None, contact=None, options=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
-        as in BackwardEuler.step."""
+        as in BackwardEuler.step; options: a StepOptions for this step only (dt, Newton
+        iterations, implicit fictitious forces). The step's terms read dt, the iteration
+        count and the fictitious treatment from the model, so they are set for the duration
+        of the call and always put back."""
+        if options is None:
+            return self._step(f_ext, gravity, contact)
+        saved = (self.dt, self.newton_iterations, self.fictitious)
+        if options.dt:
+            self.dt = float(options.dt)
+        if options.newton_iterations:
+            self.newton_iterations = max(self.newton_iterations, int(options.newton_iterations))
+        if options.fictitious:
+            self.fictitious = options.fictitious
+        try:
+            return self._step(f_ext, gravity, contact)
+        finally:
+            self.dt, self.newton_iterations, self.fictitious = saved
+
+    def _step(self, f_ext, gravity, contact):
         t0 = time.perf_counter()
         dt = self.dt
         gm = self._global_motion()
