@@ -101,26 +101,9 @@ class GuardSettings:
 
 
 def measure(model, tets, gravity, check_inversion=True):
-    """Measure a model's current state (see Measure). Never raises on NaN. A model with a
-    guard_measure method (ReducedModel) measures itself in its own coordinates."""
-    if hasattr(model, "guard_measure"):
-        return model.guard_measure(gravity, check_inversion)
-    with np.errstate(all="ignore"):
-        x = np.asarray(model.vertex_positions(), dtype=np.float64)
-        v = np.asarray(model.vertex_velocities(), dtype=np.float64)
-        finite = bool(np.isfinite(x).all() and np.isfinite(v).all())
-        if not finite:
-            return Measure(x, v, np.nan, np.nan, np.nan, len(tets), False)
-        m = model.vertex_mass
-        kinetic = 0.5 * float((m * (v * v).sum(1)).sum())
-        try:
-            elastic = float(model.elastic_energy())
-        except NUMERICAL_ERRORS:
-            elastic = np.nan
-        grav = -float((m * (x @ gravity)).sum())
-        inverted = inverted_tets(x, tets) if check_inversion else 0
-    finite = bool(np.isfinite([kinetic, elastic, grav]).all())
-    return Measure(x, v, kinetic, elastic, grav, inverted, finite)
+    """Measure a model's current state (see Measure); each model measures itself in its own
+    coordinates (model_api.Model.guard_measure; tets are the body's). Never raises on NaN."""
+    return model.guard_measure(gravity, check_inversion)
 
 
 @dataclass
@@ -320,7 +303,7 @@ class StabilityGuard:
         half the drift budget (_untangle_affordable).
         Returns the Measure of the state the step ends in."""
         s = self.settings
-        if not (s.inversion and s.untangle_after > 0 and hasattr(self.model, "untangle")) or not after.inverted:
+        if not (s.inversion and s.untangle_after > 0 and self.model.can_untangle) or not after.inverted:
             self._inverted_run = 0
             return after
         self._inverted_run += 1
@@ -367,7 +350,6 @@ class StabilityGuard:
         Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
         model = self.model
         options = StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None)
-        loaded = None if hasattr(model, "guard_measure") else sparse_loads(f_app)     # (ids, forces)
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
         self._work = 0.0
         self._projected = (0, 0.0)
@@ -382,7 +364,7 @@ class StabilityGuard:
                 self.last_error = f"{type(err).__name__}: {err}"
                 return {"error": self.last_error}, v, prev
             after = measure(model, self.tets, gravity, self.settings.inversion)
-            work = _work(f_app, loaded, prev, after, getattr(model, "contact", None),
+            work = _work(f_app, prev, after, model.contact,
                          stats.get("external_work") if isinstance(stats, dict) else None,
                          stats.get("contact_work") if isinstance(stats, dict) else None)
             v = self.judge(prev, after, work, stats, gravity)
@@ -410,12 +392,7 @@ class StabilityGuard:
 def mean_motion(model):
     """(total mass M, mass-centre velocity V (3,)) of a model; V = 0 when pins hold the body
     (then nothing conserves momentum and all motion is scaled)."""
-    if hasattr(model, "mean_motion"):
-        return model.mean_motion()
-    m = model.vertex_mass
-    if model.body.pinned.size:
-        return float(m.sum()), np.zeros(3)
-    return float(m.sum()), (m[:, None] * model.vertex_velocities()).sum(0) / m.sum()
+    return model.mean_motion()
 
 
 def project_energy(model, after, excess):
@@ -434,16 +411,11 @@ def project_energy(model, after, excess):
     if not (rel > excess):
         return None
     s = float(np.sqrt((rel - excess) / rel))
-    if hasattr(model, "scale_relative_motion"):
-        model.scale_relative_motion(s, V)
-    else:
-        v = V + s * (np.asarray(model.vertex_velocities()) - V)
-        v[model.body.pinned] = 0.0
-        model.v = v
+    model.scale_relative_motion(s, V)
     return float(excess)
 
 
-def _work(f_app, loaded, before, after, contact, model_work=None, contact_work=None):
+def _work(f_app, before, after, contact, model_work=None, contact_work=None):
     """Work of the applied loads (constant over the step) and of the contact forces on the
     body over a (sub-)step. For the loads: the model's own account when it reports one
     (ReducedModel: dt F_app . Q', its backward-Euler work, which stays right when a frame
@@ -453,7 +425,7 @@ def _work(f_app, loaded, before, after, contact, model_work=None, contact_work=N
         if model_work is not None:
             w = float(model_work)
         else:
-            ids, f = loaded
+            ids, f = sparse_loads(f_app)
             w = float((f * (after.x[ids] - before.x[ids])).sum()) if len(ids) else 0.0
         if contact_work is not None:
             w += float(contact_work)

@@ -314,9 +314,7 @@ class MdssNode(Node):
         self.handles = set(scene["handles"])
         self.colliders = list(scene["colliders"])
         self.domain_names = self._domain_names()
-        vdom = getattr(self.sim.model, "vertex_domain", None)
-        self.surface_domain = (np.zeros(len(self.surface_ids), np.int64) if vdom is None
-                               else np.asarray(vdom)[self.surface_ids])
+        self.surface_domain = np.asarray(self.sim.model.vertex_domain)[self.surface_ids]
         self._points = convert.SurfacePoints(self.surface_domain)
         self._mesh = convert.MeshEncoder(self.triangles)
         self._marker = convert.MarkerEncoder(self.triangles, self.surface_domain)
@@ -470,8 +468,7 @@ class MdssNode(Node):
 
     def _domain_names(self):
         n = len(self.sim.domain_poses())
-        names_of = getattr(self.sim.model, "domain_names", None)
-        names = list(names_of()) if callable(names_of) else ["body"]
+        names = list(self.sim.model.domain_names())
         if len(names) != n:
             names = ["body"] if n == 1 else [f"domain_{i}" for i in range(n)]
         return names

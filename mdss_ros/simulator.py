@@ -48,8 +48,7 @@ class Simulator:
         self._collider_cache, self._collider_sdfs = cache, {}     # mesh colliders' grids (reset reuses them)
         self._make_colliders()
         self._collider_names = set(self.colliders)
-        if hasattr(self.model, "watch"):
-            self.model.watch(self.body.surface.vertex_ids)     # only the surface is rebuilt per frame
+        self.model.watch(self.body.surface.vertex_ids)         # only the surface is rebuilt per frame
         self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
         n = scene["model"]["blas_threads"]
         self._blas_threads = BlasThreads((1 if self.model.kind == "reduced" else None) if n == "auto" else n)
@@ -363,7 +362,7 @@ class Simulator:
     def contacts(self):
         """Active contacts of the last step: (k, 10) rows x y z nx ny nz depth fx fy fz
         (point on the body, collider normal, penetration depth, force on the body)."""
-        c = getattr(self.model, "contact", None)
+        c = self.model.contact
         if not c or len(c["vertices"]) == 0:
             return np.zeros((0, 10))
         return np.hstack([c["points"], c["normals"], c["depth"][:, None], c["forces"]])
@@ -373,7 +372,7 @@ class Simulator:
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
         from .contact.unilateral import contact_wrenches
-        c = getattr(self.model, "contact", None)
+        c = self.model.contact
         if not c or len(c["vertices"]) == 0:
             return np.zeros(6)
         return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])[name]
@@ -386,11 +385,7 @@ class Simulator:
         lines = [f"scene {sc.name!r} ({sc.source}): {len(b.vertices)} vertices, {len(b.tets)} tets, "
                  f"{len(b.surface.vertex_ids)} surface vertices, {b.pinned.size} pinned, "
                  f"handles {sorted(b.handles) or 'none'}, dt = {self.dt:.6g} s"]
-        if hasattr(self.model, "explain"):
-            lines += self.model.explain()
-        else:
-            lines.append(f"{self.model.kind} model: every vertex an unknown, {self.model.n_dofs} DOFs "
-                         f"({b.pinned.size} pinned vertices removed), no domains or modes")
+        lines += self.model.explain()
         if self.colliders:
             shapes = ", ".join(f"{n} ({c.shape})" for n, c in self.colliders.items())
             faces = [n for n, c in self.colliders.items()
@@ -423,12 +418,11 @@ class Simulator:
                          f"{'cached probe' if bud.get('cached') else 'probe'} of {cands})")
         guard = self.scene["model"]["guard"]
         untangle = (f"; inverted elements a reduced model keeps for {guard['untangle_after']} steps are untangled"
-                    if guard["untangle_after"] and hasattr(self.model, "untangle") else "")
+                    if guard["untangle_after"] and self.model.can_untangle else "")
         lines.append("stability guard: " + ("on (every step checked for NaN, energy growth, speed and new "
                                               f"inversions; a bad step is rolled back and retried{untangle})"
                                               if guard["enabled"] else "off (model.guard.enabled: false)"))
-        watched = hasattr(self.model, "watch")
-        lines.append(f"outputs per step: {'only ' if watched else ''}the {len(b.surface.vertex_ids)} surface "
+        lines.append(f"outputs per step: only the {len(b.surface.vertex_ids)} surface "
                      f"vertices of {len(b.vertices)} are reconstructed for publishing; all vertices, energies, "
                      f"contacts and wrenches only when asked (vertex_positions(), energy(), ...)")
         iv = sc["initial_velocity"]

@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mdss_ros"
 LAYERS = [
     ("base", ["mdss_ros.errors", "mdss_ros.version", "mdss_ros.rotations", "mdss_ros.loads",
               "mdss_ros.linear_solver", "mdss_ros.threads", "mdss_ros.precompute", "mdss_ros.timeline",
-              "mdss_ros.state_measure", "mdss_ros.step_options"]),
+              "mdss_ros.state_measure", "mdss_ros.step_options", "mdss_ros.model_api"]),
     ("mesh, fem, contact", ["mdss_ros.mesh", "mdss_ros.fem", "mdss_ros.contact", "mdss_ros.meshless"]),
     ("reduced", ["mdss_ros.reduced"]),
     ("model build", ["mdss_ros.body", "mdss_ros.scene", "mdss_ros.model_build"]),

@@ -6,6 +6,7 @@ import numpy as np
 
 from ..loads import VertexLoads
 from ..rotations import quat_from_matrix
+from ..state_measure import Measure, inverted_tets
 from .backward_euler import BackwardEuler, NewtonSettings
 from .force_model import FEMForceModel
 
@@ -39,7 +40,7 @@ class VertexState:
     @property
     def newton_iterations(self):
         """Newton iterations per step as configured (1 for an explicit integrator)."""
-        return getattr(self.integrator.settings, "max_iterations", 1)
+        return getattr(getattr(self.integrator, "settings", None), "max_iterations", 1)
 
     def step(self, f_ext, gravity=None, contact=None, options=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) plus gravity (3,);
@@ -110,6 +111,60 @@ class VertexState:
     def domain_poses(self):
         """One domain: the body's mass centre and best-fit rotation (polar decomposition)."""
         return best_fit_pose(self.body.vertices, self.x, self.vertex_mass)[None, :]
+
+    # --- the rest of model_api.Model: one domain, the vertices are the state -------------
+    can_untangle = False        # positions are the unknowns: nothing to shrink them towards
+
+    @property
+    def vertex_domain(self):
+        return np.zeros(len(self.body.vertices), dtype=np.int64)
+
+    def domain_names(self):
+        return ["body"]
+
+    def watch(self, ids):
+        """positions_of is a gather: nothing to prepare."""
+
+    def explain(self):
+        return [f"{self.kind} model: every vertex an unknown, {self.n_dofs} DOFs ({self.body.pinned.size} "
+                f"pinned vertices removed), no domains or modes"]
+
+    def guard_measure(self, gravity, check_inversion=True):
+        """state_measure.Measure from the vertices: kinetic, elastic and gravity energy,
+        inverted elements of the body. Never raises on NaN."""
+        with np.errstate(all="ignore"):
+            x = np.asarray(self.vertex_positions(), dtype=np.float64)
+            v = np.asarray(self.vertex_velocities(), dtype=np.float64)
+            tets = self.body.tets
+            if not (np.isfinite(x).all() and np.isfinite(v).all()):
+                return Measure(x, v, np.nan, np.nan, np.nan, len(tets), False)
+            m = self.vertex_mass
+            kinetic = 0.5 * float((m * (v * v).sum(1)).sum())
+            try:
+                elastic = float(self.elastic_energy())
+            except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError):
+                elastic = np.nan
+            grav = -float((m * (x @ gravity)).sum())
+            inverted = inverted_tets(x, tets) if check_inversion else 0
+        finite = bool(np.isfinite([kinetic, elastic, grav]).all())
+        return Measure(x, v, kinetic, elastic, grav, inverted, finite)
+
+    def mean_motion(self):
+        """(total mass, mass-centre velocity (3,)); zero velocity when pins hold the body
+        (then nothing conserves momentum and all motion is scaled)."""
+        m = self.vertex_mass
+        if self.body.pinned.size:
+            return float(m.sum()), np.zeros(3)
+        return float(m.sum()), (m[:, None] * self.vertex_velocities()).sum(0) / m.sum()
+
+    def scale_relative_motion(self, s, V):
+        """The guard's energy projection: v <- V + s (v - V), pinned vertices at rest."""
+        v = V + s * (np.asarray(self.vertex_velocities()) - V)
+        v[self.body.pinned] = 0.0
+        self.v = v
+
+    def untangle(self, tets, bisections=8):
+        return None
 
 
 class FullSpaceModel(VertexState):

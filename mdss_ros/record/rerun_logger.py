@@ -129,8 +129,7 @@ class RerunLogger:
         rr, rec, sim = self.rr, self.rec, self.sim
         pal = _palette()
         ids = np.asarray(sim.surface_vertex_ids())
-        vdom = getattr(sim.model, "vertex_domain", None)
-        dom = np.zeros(len(ids), np.int64) if vdom is None else np.asarray(vdom)[ids]
+        dom = np.asarray(sim.model.vertex_domain)[ids]
         colors = pal[dom % len(pal)]
         rec.log("world/body/surface", rr.Mesh3D.from_fields(
             triangle_indices=np.asarray(sim.surface_triangles(), dtype=np.uint32), vertex_colors=colors),

@@ -182,8 +182,7 @@ def due(rate, dt, step, previous_step):
 def domain_names(sim):
     """Domain (tf child frame) names, as the node names them."""
     n = len(sim.domain_poses())
-    names_of = getattr(sim.model, "domain_names", None)
-    names = list(names_of()) if callable(names_of) else ["body"]
+    names = list(sim.model.domain_names())
     if len(names) != n:
         names = ["body"] if n == 1 else [f"domain_{i}" for i in range(n)]
     return names
@@ -192,8 +191,7 @@ def domain_names(sim):
 def surface_domain(sim):
     """Domain index of each surface vertex (S,), in topology order."""
     ids = np.asarray(sim.surface_vertex_ids())
-    vdom = getattr(sim.model, "vertex_domain", None)
-    return np.zeros(len(ids), np.int64) if vdom is None else np.asarray(vdom)[ids]
+    return np.asarray(sim.model.vertex_domain)[ids]
 
 
 def seconds_of(stamp):

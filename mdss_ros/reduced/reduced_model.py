@@ -61,6 +61,7 @@ class ReducedModel:
     """
 
     kind = "reduced"
+    can_untangle = True
 
     def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None):
         from .partition import build_partition, domain_elimination_order, domain_labels
