@@ -141,8 +141,9 @@ class DomainLayout:
         """Inertia about the centre of mass in each domain frame at deformation q (D, r_max):
         (D, 3, 3). I(q) = I0 + (tr L + tr B2(q, q)) I - L - B2(q, q), L = B1(q) + B1(q)^T
         (domains.SubspaceDomain.inertia, all domains at once; fixed domains keep I0)."""
-        B1q = np.einsum("da,daij->dij", q, self.B1)
-        B2q = np.einsum("da,db,dabij->dij", q, q, self.B2)
+        D, r = q.shape
+        B1q = (q[:, None, :] @ self.B1.reshape(D, r, 9)).reshape(D, 3, 3)
+        B2q = (q[:, None, :] @ (q[:, None, :] @ self.B2.reshape(D, r, r * 9)).reshape(D, r, 9)).reshape(D, 3, 3)
         lin = B1q + B1q.transpose(0, 2, 1)
         tr = np.trace(lin, axis1=1, axis2=2) + np.trace(B2q, axis1=1, axis2=2)
         return self.inertia0 + tr[:, None, None] * np.eye(3) - lin - B2q

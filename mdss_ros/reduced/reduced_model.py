@@ -24,6 +24,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.spatial.transform import Rotation
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
@@ -32,13 +33,13 @@ from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..loads import sparse_loads
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
-from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch, quat_from_matrix
+from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
 from . import reconstruct
 from .block_cholesky import BlockCholesky
 from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
-from .frames import FrameState, fictitious_forces
+from .frames import FrameState, fictitious_forces, omega_B2_omega
 from .layout import DomainLayout
 from .sampled_forces import StackedSamples
 
@@ -824,7 +825,7 @@ class ReducedModel:
         C = 2.0 * np.einsum("dabk,dk->dab", L.W, omega)
         eye = L.mask[:, :, None] & np.eye(L.r_max, dtype=bool)
         Kc = ((omega * omega).sum(1)[:, None, None] * eye * L.movable[:, None, None]
-              - np.einsum("di,dabij,dj->dab", omega, L.B2, omega))
+              - omega_B2_omega(L.B2, omega))
         return C, Kc
 
     def _modal_coriolis_rotate(self, C, Q):
@@ -1064,7 +1065,7 @@ class ReducedModel:
         # The applied loads as generalised forces at the step start (no gravity: it is a
         # potential); their work over the step is dt F_app . Q' (reported for the guard).
         F_app = self._external(f_ext, None, self.frames, self.q)
-        base = ([qi.copy() for qi in self.q], self.frames.copy(), self.x_full.copy(), gm)
+        base = (self.q.copy(), self.frames.copy(), self.x_full.copy(), gm)
         Qn = self.get_Q()
         if gm is not None:
             Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm))
@@ -1286,7 +1287,7 @@ class ReducedModel:
             w = np.einsum("dji,dj->di", fr.R, fr.w)
             spin = (0.5 * L.total_mass * (fr.v * fr.v).sum(1)
                     + 0.5 * np.einsum("di,dij,dj->d", w, L.inertia(q), w)
-                    + np.einsum("da,db,dabk,dk->d", q, qd, L.W, w))
+                    + ((np.einsum("da,dabk->dbk", q, L.W) * qd[:, :, None]).sum(1) * w).sum(1))
             kinetic = 0.5 * float((qd * qd).sum()) + float(spin[mv].sum())
             qn, qdn = np.sqrt((q * q).sum(1)), np.sqrt((qd * qd).sum(1))
             speeds = np.where(mv, np.sqrt((fr.v * fr.v).sum(1)) + np.sqrt((fr.w * fr.w).sum(1))
@@ -1435,15 +1436,18 @@ class ReducedModel:
         return self._guard_tet_list[coupling]
 
     def domain_poses(self):
+        """(d, 7) x y z qx qy qz qw per domain: the frames of subspace domains (all at once,
+        scipy's Rotation, w >= 0), a best-fit pose for each full-space domain."""
         out = np.zeros((len(self.domain_kind), 7))
-        for i, (kind, k) in enumerate(self.domain_kind):
-            if kind == "sub":
-                out[i, :3] = self.frames.c[k]
-                out[i, 3:] = quat_from_matrix(self.frames.R[k])
-            else:
-                from ..fem.full_model import best_fit_pose
-                ids = self.full[k].vertices
-                out[i] = best_fit_pose(self.body.vertices[ids], self.x_full[ids], self.vertex_mass[ids])
+        sub = self.sub_index_of_domain >= 0
+        if sub.any():
+            k = self.sub_index_of_domain[sub]
+            out[sub, :3] = self.frames.c[k]
+            out[sub, 3:] = Rotation.from_matrix(self.frames.R[k]).as_quat(canonical=True)
+        for fd in self.full:                     # full-space domains: a pose fit each (few)
+            from ..fem.full_model import best_fit_pose
+            ids = fd.vertices
+            out[fd.index] = best_fit_pose(self.body.vertices[ids], self.x_full[ids], self.vertex_mass[ids])
         return out
 
     def domain_names(self):

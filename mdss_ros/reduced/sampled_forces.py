@@ -241,7 +241,8 @@ class StackedSamples:
 
     def inverted(self, q):
         """Samples with det F <= 0 (or not finite) at q (D, r_max): the guard's count."""
-        F = np.einsum("dsab,db->dsa", self.G, q)[self.valid]
+        D, s, _, r = self.G.shape
+        F = (self.G.reshape(D, s * 9, r) @ q[:, :, None]).reshape(D, s, 9)[self.valid]
         F[:, [0, 4, 8]] += 1.0
         det = (F[:, 0] * (F[:, 4] * F[:, 8] - F[:, 5] * F[:, 7]) - F[:, 1] * (F[:, 3] * F[:, 8] - F[:, 5] * F[:, 6])
                + F[:, 2] * (F[:, 3] * F[:, 7] - F[:, 4] * F[:, 6]))
