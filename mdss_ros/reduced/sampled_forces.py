@@ -187,18 +187,25 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
             _deformation_gradient(G[d, s], q[d], F)
             psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
             energy_out[d, s] = w * psi
+            # Loops ordered so that the innermost runs along the modes (contiguous rows of
+            # G): it vectorises, where a sum over the 9 entries of F per mode did not.
+            g = g_out[d, s]
+            g[:] = 0.0
+            for a in range(9):
+                p = P[a // 3, a % 3]
+                for b in range(r):
+                    g[b] += G[d, s, a, b] * p
             for b in range(r):
-                acc = 0.0
-                for a in range(9):
-                    acc += G[d, s, a, b] * P[a // 3, a % 3]
-                g_out[d, s, b] = w * acc
+                g[b] *= w
             if want_hessian:
                 for a in range(9):
+                    row = CG_out[d, s, a]
+                    row[:] = 0.0
+                    for k in range(9):
+                        c = C[a, k]
+                        for b in range(r):
+                            row[b] += c * G[d, s, k, b]
                     for b in range(r):
-                        acc = 0.0
-                        for k in range(9):
-                            acc += C[a, k] * G[d, s, k, b]
-                        CG_out[d, s, a, b] = acc
                         WG_out[d, s, a, b] = w * G[d, s, a, b]
 
 
