@@ -388,6 +388,7 @@ class ReducedModel:
         self.qd = self.layout.zeros()
         self.frames = FrameState.at_rest([dom.cbar for dom in self.subspace])
         self.x_full = self.body.vertices.copy()          # only full-space rows are used
+        self._full_alive = self._alive_weights()          # cutting is not undone by a reset
         self.v_full = np.zeros_like(self.x_full)
         self.last = {"elastic": 0.0}
         self.stats = {}
@@ -395,6 +396,10 @@ class ReducedModel:
         # The contact LCP's warm start (_contact_solve): part of the state, so a rolled
         # back or replayed step repeats bit for bit.
         self._contact_history, self._contact_rows_seen = [], None
+
+    def _alive_weights(self):
+        """1.0 / 0.0 per full-space domain element (cut elements 0), all domains concatenated."""
+        return np.concatenate([fd.alive for fd in self.full]).astype(float) if self.full else np.zeros(0)
 
     def get_state(self):
         """A snapshot of the dynamic state (copies): q, qd (per subspace domain), frames,
@@ -658,7 +663,7 @@ class ReducedModel:
                                            self.body.material, want_hessian, project)
             # Only the full-space domain elements act here; coupling elements go through J.
             nf = self.n_full_elems
-            alive = np.concatenate([fd.alive for fd in self.full]).astype(float)
+            alive = self._full_alive
             f_f[:nf] *= alive[:, None, None]
             f_f[nf:] = 0.0
             energy += float((e_f[:nf] * alive).sum())
@@ -1533,5 +1538,6 @@ class ReducedModel:
             hit = np.isin(fd.elements, tet_ids) & fd.alive
             fd.alive[hit] = False
             removed += int(hit.sum())
+        self._full_alive = self._alive_weights()
         self._cut_version = getattr(self, "_cut_version", 0) + 1     # forces changed: re-evaluate
         return removed
