@@ -43,6 +43,17 @@ def symbolic_elimination(n_blocks, edges, order):
 
 
 @njit(cache=True)
+def permute_lower(A, perm, out):
+    """out[i, j] = A[perm[i], perm[j]] for j <= i (the triangle the factor reads): a 2-D
+    fancy-index copy of the whole matrix took 40 % of the factor's time."""
+    n = perm.shape[0]
+    for i in range(n):
+        pi = perm[i]
+        for j in range(i + 1):
+            out[i, j] = A[pi, perm[j]]
+
+
+@njit(cache=True)
 def factor_blocks(A, po, later_ptr, later_idx):
     """In-place block Cholesky of A (S, S), already permuted to elimination order: block p
     spans rows po[p]:po[p + 1]; later_idx[later_ptr[p]:later_ptr[p + 1]] are the blocks
@@ -163,7 +174,10 @@ class BlockCholesky:
         return nnz
 
     def factor(self, A):
-        L = np.ascontiguousarray(A[np.ix_(self.perm, self.perm)])
+        if self.L is None:
+            self.L = np.zeros((len(self.perm), len(self.perm)))     # reused: only its lower triangle is read
+        L = self.L
+        permute_lower(np.ascontiguousarray(A), self.perm, L)
         failed = factor_blocks(L, self.po, self.later_ptr, self.later_idx)
         if failed >= 0:
             raise NotPositiveDefinite(f"diagonal block of domain {self.order[failed]} is not positive definite")
