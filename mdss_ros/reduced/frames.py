@@ -109,7 +109,8 @@ class FrameState:
         self.w = np.where(movable[:, None], w_new, 0.0)
         self.c = self.c + dt * self.v
         mv = np.flatnonzero(movable)
-        self.R[mv] = orthonormalise_batch(exp_so3_batch(dt * self.w[mv]) @ self.R[mv])
+        if len(mv):              # a pinned body's frames stay put (and small arrays cost per call)
+            self.R[mv] = orthonormalise_batch(exp_so3_batch(dt * self.w[mv]) @ self.R[mv])
 
 
 def rest_inertia(r_local, mass):

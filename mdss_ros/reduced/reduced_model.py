@@ -814,6 +814,8 @@ class ReducedModel:
         M = np.zeros((self.S, self.S))
         modal = L.q_index[L.mask]
         M[modal, modal] = 1.0
+        if not len(mv):
+            return M
         M[L.lin_index, L.lin_index] = L.total_mass[mv, None]
         R = L.predicted_rotations(frames.R[mv], frames.w[mv], self.dt) if predicted else frames.R[mv]
         M[L.ang_index[:, :, None], L.ang_index[:, None, :]] = R @ L.inertia(self.q)[mv] @ R.transpose(0, 2, 1)
@@ -850,6 +852,8 @@ class ReducedModel:
         Coriolis term (the implicit treatment rotates qd instead)."""
         L = self.layout
         F = np.zeros(self.n_gen)
+        if not len(L.movers):
+            return F                     # fixed frames: no fictitious forces
         omega = np.einsum("dji,dj->di", frames.R, frames.w)
         alpha = np.einsum("dji,dj->di", frames.R, frames.w - frames.w_prev) / self.dt
         f = fictitious_forces(L, q, qd if coriolis else np.zeros_like(qd), omega, alpha)
@@ -1289,11 +1293,13 @@ class ReducedModel:
             L = self.layout
             q, qd = self.q, self.qd
             mv = L.movable
-            w = np.einsum("dji,dj->di", fr.R, fr.w)
-            spin = (0.5 * L.total_mass * (fr.v * fr.v).sum(1)
-                    + 0.5 * np.einsum("di,dij,dj->d", w, L.inertia(q), w)
-                    + ((np.einsum("da,dabk->dbk", q, L.W) * qd[:, :, None]).sum(1) * w).sum(1))
-            kinetic = 0.5 * float((qd * qd).sum()) + float(spin[mv].sum())
+            kinetic = 0.5 * float((qd * qd).sum())
+            if len(L.movers):
+                w = np.einsum("dji,dj->di", fr.R, fr.w)
+                spin = (0.5 * L.total_mass * (fr.v * fr.v).sum(1)
+                        + 0.5 * np.einsum("di,dij,dj->d", w, L.inertia(q), w)
+                        + ((np.einsum("da,dabk->dbk", q, L.W) * qd[:, :, None]).sum(1) * w).sum(1))
+                kinetic += float(spin[mv].sum())
             qn, qdn = np.sqrt((q * q).sum(1)), np.sqrt((qd * qd).sum(1))
             speeds = np.where(mv, np.sqrt((fr.v * fr.v).sum(1)) + np.sqrt((fr.w * fr.w).sum(1))
                               * (L.rho + L.sigma * qn) + L.sigma * qdn, L.sigma * qdn)
