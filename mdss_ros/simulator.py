@@ -46,6 +46,7 @@ class Simulator:
         self.gravity = np.asarray(scene["gravity"], dtype=np.float64)
         self._dt = self.model.dt
         self._collider_cache, self._collider_sdfs = cache, {}     # mesh colliders' grids (reset reuses them)
+        self._contact_margin = None                               # a mean surface edge, on first contact
         self._make_colliders()
         self._collider_names = set(self.colliders)
         self.model.watch(self.body.surface.vertex_ids)         # only the surface is rebuilt per frame
@@ -346,7 +347,7 @@ class Simulator:
         return stats
 
     def _contact_spec(self):
-        if not hasattr(self, "_contact_margin"):
+        if self._contact_margin is None:
             tri = self.body.surface.triangles
             pos = self.rest_positions()[self.body.surface.vertex_ids]
             edges = np.linalg.norm(pos[tri[:, [1, 2, 0]]] - pos[tri], axis=2)

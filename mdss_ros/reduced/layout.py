@@ -26,6 +26,9 @@ Per vertex of a subspace domain, stacked domain after domain (reconstruct.py):
 
     U (n_sub, 3, r_max) basis rows, r_local (n_sub, 3) rest offsets about the frame origin,
     row_domain (n_sub,); vertex_row (n_verts,) a vertex's row here, -1 for full-space ones.
+
+block_rows, block_cols, block_valid: where the entries of a stack of modal blocks
+(D, r_max, r_max)[block_valid] go in an (S, S) matrix.
 """
 from dataclasses import dataclass
 
@@ -58,6 +61,9 @@ class DomainLayout:
     r_local: np.ndarray
     row_domain: np.ndarray
     vertex_row: np.ndarray
+    block_rows: np.ndarray
+    block_cols: np.ndarray
+    block_valid: np.ndarray
 
     @classmethod
     def build(cls, domains, offsets, n_verts):
@@ -93,6 +99,10 @@ class DomainLayout:
             start += n
         movers = np.flatnonzero(movable)
         frame0 = offsets[:-1][movers] + r[movers]
+        # Where each domain's (r_max, r_max) modal block goes in an (S, S) matrix.
+        block_valid = (q_index[:, :, None] >= 0) & (q_index[:, None, :] >= 0)
+        block_rows = np.broadcast_to(q_index[:, :, None], block_valid.shape)[block_valid]
+        block_cols = np.broadcast_to(q_index[:, None, :], block_valid.shape)[block_valid]
         return cls(r=r, r_max=r_max, movable=movable, q_index=q_index, mask=q_index >= 0, movers=movers,
                    lin_index=frame0[:, None] + np.arange(3), ang_index=frame0[:, None] + np.arange(3, 6),
                    total_mass=np.array([dom.total_mass for dom in domains]),
@@ -101,7 +111,8 @@ class DomainLayout:
                    mass_r=np.array([dom.mass @ dom.r_local for dom in domains]).reshape(D, 3),
                    rho=np.array([np.linalg.norm(dom.r_local, axis=1).max() for dom in domains]),
                    sigma=np.array([np.sqrt((dom.U3 ** 2).sum(axis=(1, 2)).max()) for dom in domains]),
-                   U=U, r_local=r_local, row_domain=row_domain, vertex_row=vertex_row)
+                   U=U, r_local=r_local, row_domain=row_domain, vertex_row=vertex_row,
+                   block_rows=block_rows, block_cols=block_cols, block_valid=block_valid)
 
     @property
     def D(self):

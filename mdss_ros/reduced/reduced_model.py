@@ -364,11 +364,8 @@ class ReducedModel:
         self.J_cols = np.full((n_I, self.s_max), -1, dtype=np.int64)
         self.J_full = self.is_full_vertex[iv]
         self.J_icol = np.full((n_I, 3), -1, dtype=np.int64)
-        self.iface_groups = []         # per subspace domain: (rows in iface, local vertex ids)
-        self._iface_basis = None       # their basis rows, gathered on first use (_interface_J)
-        for k, dom in enumerate(self.subspace):
+        for k, dom in enumerate(self.subspace):          # per coupling set, not per step
             rows = np.flatnonzero(self.vertex_domain[iv] == dom.index)
-            self.iface_groups.append((rows, self.vertex_local[iv[rows]]))
             self.J_cols[rows, :dom.n_dofs] = self.sub_offsets[k] + np.arange(dom.n_dofs)
         full_rows = np.flatnonzero(self.J_full)
         fdof = self.full_dof_of_vertex[iv[full_rows]]
@@ -379,6 +376,19 @@ class ReducedModel:
         self.iface_full_cols = self.J_cols[free_rows, :3].reshape(-1) - self.S      # (3 F_I,)
         self.J_static = np.zeros((n_I, 3, self.s_max))
         self.J_static[free_rows, :, :3] = np.eye(3)
+        # Basis rows and rest offsets of the subspace interface vertices (interface_jacobian)
+        L = self.layout
+        rows = L.vertex_row[iv]
+        sub = np.flatnonzero(rows >= 0)
+        U = np.zeros((n_I, 3, L.r_max))
+        r_loc = np.zeros((n_I, 3))
+        row_dom = np.full(n_I, -1, dtype=np.int64)
+        U[sub], r_loc[sub], row_dom[sub] = L.U[rows[sub]], L.r_local[rows[sub]], L.row_domain[rows[sub]]
+        self._iface_basis = (U, r_loc, row_dom)
+        # The coupling projection's static data (coupling.TwoPhaseProjection)
+        sizes = np.array([dom.n_dofs for dom in self.subspace], dtype=np.int64)
+        self._tp = TwoPhaseProjection(self.c_elem, self.sub_index_of_domain[self.vertex_domain[iv]], sizes,
+                                      self.sub_offsets)
 
     # ------------------------------------------------------------------ state
     def reset(self):
@@ -395,7 +405,8 @@ class ReducedModel:
         self.contact = None
         # The contact LCP's warm start (_contact_solve): part of the state, so a rolled
         # back or replayed step repeats bit for bit.
-        self._contact_history, self._contact_rows_seen = [], None
+        self._contact_history, self._contact_rows_seen, self._contact_lam = [], None, None
+        self._start_eval = None         # the evaluation at the current state (_start_evaluation)
 
     def _full_rows(self, a):
         """A copy of x_full or v_full (n_verts, 3) for a snapshot. Without full-space
@@ -619,15 +630,6 @@ class ReducedModel:
     def _interface_J(self, q, frames):
         """J values (n_I, 3, s_max) and world positions (n_I, 3) of the interface vertices."""
         L = self.layout
-        if getattr(self, "_iface_basis", None) is None:
-            # Basis rows and rest offsets of every interface vertex, gathered once.
-            rows = L.vertex_row[self.iface]
-            sub = np.flatnonzero(rows >= 0)
-            U = np.zeros((len(rows), 3, L.r_max))
-            r_loc = np.zeros((len(rows), 3))
-            row_dom = np.full(len(rows), -1, dtype=np.int64)
-            U[sub], r_loc[sub], row_dom[sub] = L.U[rows[sub]], L.r_local[rows[sub]], L.row_domain[rows[sub]]
-            self._iface_basis = (np.ascontiguousarray(U), np.ascontiguousarray(r_loc), row_dom)
         U, r_loc, row_dom = self._iface_basis
         J = np.empty((len(self.iface), 3, self.s_max))
         x = np.empty((len(self.iface), 3))
@@ -650,8 +652,7 @@ class ReducedModel:
             energy = float(e.sum())
             G[L.q_index[L.mask]] = g[L.mask]
             if want_hessian:
-                ii, jj, valid = self._modal_blocks()
-                K_ss[ii, jj] = Kr[valid]
+                K_ss[L.block_rows, L.block_cols] = Kr[L.block_valid]
         else:
             # Exact forces over every domain element (no cubature): each domain's sparse
             # stiffness projected on its basis, the accurate and slow option.
@@ -705,11 +706,11 @@ class ReducedModel:
             project_coupling_left(self.c_elem, f_c, K_c if want_hessian else np.zeros((len(f_c), 12, 12)),
                                   JL, J, self.J_cols, G, K_ss if want_hessian else np.zeros((self.S, self.S)))
         elif two_phase:
-            self._two_phase().add(f_c, K_c, J, G, K_ss, w_c)
+            self._tp.add(f_c, K_c, J, G, K_ss, w_c)
         elif want_hessian:
             # Beside full-space domains: subspace pairs two-phase, subspace-full pairs into A_sI.
             project_forces(self.c_elem, f_c, J, self.J_cols, G)
-            self._two_phase().add(f_c, K_c, J, None, K_ss)
+            self._tp.add(f_c, K_c, J, None, K_ss)
             project_coupling_full(self.c_elem, K_c, J, self.J_cols, self.J_full, self.J_icol, K_sI)
             if self.F:
                 K_f[self.n_full_elems:] = self._coupling_full_block(K_c)
@@ -719,26 +720,6 @@ class ReducedModel:
         t2 = time.perf_counter()
         self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
         return G, K_ss, K_sI, K_ff, energy, J, x_I
-
-    def _modal_blocks(self):
-        """(rows, cols, valid): where the domains' (D, r_max, r_max) modal blocks go in the
-        (S, S) subspace matrix; valid (D, r_max, r_max) drops the padding."""
-        if getattr(self, "_modal_block_index", None) is None:
-            qi = self.layout.q_index
-            valid = (qi[:, :, None] >= 0) & (qi[:, None, :] >= 0)
-            ii = np.broadcast_to(qi[:, :, None], valid.shape)[valid]
-            jj = np.broadcast_to(qi[:, None, :], valid.shape)[valid]
-            self._modal_block_index = (ii, jj, valid)
-        return self._modal_block_index
-
-    def _two_phase(self):
-        """The coupling projection's static data, built once per coupling set."""
-        if getattr(self, "_tp_for", None) is not self.c_elem:
-            sub = self.sub_index_of_domain[self.vertex_domain[self.iface]]
-            sizes = np.array([dom.n_dofs for dom in self.subspace])
-            self._tp = TwoPhaseProjection(self.c_elem, sub, sizes, self.sub_offsets)
-            self._tp_for = self.c_elem
-        return self._tp
 
     def _weighted_left_J(self, J, x_I, frames):
         """Left factor of the non-uniform interface cubature (see cubature.py): per sample
@@ -1098,9 +1079,9 @@ class ReducedModel:
         if implicit:
             # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
             # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
-            ii, jj, valid = self._modal_blocks()
+            L = self.layout
             D0 = D[0].copy()
-            D0[ii, jj] -= dt * centrifugal[valid]
+            D0[L.block_rows, L.block_cols] -= dt * centrifugal[L.block_valid]
             D = (D0,) + D[1:]
         Fn = self._external(f_ext, gravity, self.frames, self.q) + \
             self._explicit_terms(self.frames, self.q, self.qd, coriolis=not implicit)
@@ -1173,7 +1154,7 @@ class ReducedModel:
         contact_work = 0.0
         if contact_rows is not None:
             verts, _, _, normals, which = contact_rows
-            lam = getattr(self, "_contact_lam", np.zeros(len(verts)))
+            lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
             active = lam > 0
             pts = self.positions_of(verts[active])
             depth = np.zeros(active.sum())
@@ -1262,13 +1243,12 @@ class ReducedModel:
         """((G, K_ss, K_sI, K_ff, energy, J, x_I), timing) of _evaluate at the current state,
         computed once per state: the cache holds the state objects it was computed from
         (every step and set_state replace them) and is dropped when a step takes it."""
-        state = (self.q, self.frames, self.x_full)
-        version = getattr(self, "_cut_version", 0)
-        c = getattr(self, "_start_eval", None)
-        if (c is None or c[3] != version or len(c[0]) != len(state)
-                or not all(a is b for a, b in zip(c[0], state))):
+        # Cutting replaces _full_alive: the forces changed, so it is part of the key.
+        state = (self.q, self.frames, self.x_full, self._full_alive)
+        c = self._start_eval
+        if c is None or not all(a is b for a, b in zip(c[0], state)):
             result = self._evaluate(self.q, self.frames, self.x_full)
-            c = (state, result, dict(self.timing), version)
+            c = (state, result, dict(self.timing))
         self._start_eval = None if take else c
         return c[1], c[2]
 
@@ -1420,8 +1400,8 @@ class ReducedModel:
         n = self.samples.inverted(self.q) if self.samples is not None else 0
         x_I = None
         if self.coupling_kind == "element":
-            c = getattr(self, "_start_eval", None)
-            if c is not None and all(a is b for a, b in zip(c[0], (self.q, self.frames, self.x_full))):
+            c = self._start_eval
+            if c is not None and all(a is b for a, b in zip(c[0], (self.q, self.frames, self.x_full, self._full_alive))):
                 x_I = c[1][6]
         ids, local = self._guard_tets(coupling=x_I is None)
         if len(ids):
@@ -1435,7 +1415,7 @@ class ReducedModel:
         inversion from vertex positions: the elements the forces evaluate that are neither
         cubature samples (_guard_inverted reads those from q) nor, unless `coupling`,
         coupling elements."""
-        if getattr(self, "_guard_tet_list", {}).get(coupling) is None:
+        if self._guard_tet_list.get(coupling) is None:
             parts = []
             for dom in self.subspace:
                 fm = dom.forces
@@ -1449,8 +1429,6 @@ class ReducedModel:
                 parts.append(self.body.tets[self.ff_elements])
             tets = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
             ids, local = np.unique(tets, return_inverse=True)
-            if not hasattr(self, "_guard_tet_list"):
-                self._guard_tet_list = {}
             self._guard_tet_list[coupling] = (ids, local.reshape(tets.shape))
         return self._guard_tet_list[coupling]
 
@@ -1553,5 +1531,4 @@ class ReducedModel:
             fd.alive[hit] = False
             removed += int(hit.sum())
         self._full_alive = self._alive_weights()
-        self._cut_version = getattr(self, "_cut_version", 0) + 1     # forces changed: re-evaluate
         return removed
