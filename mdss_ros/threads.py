@@ -49,3 +49,33 @@ class BlasThreads:
             for lib, n in zip(self._libs, saved):
                 if n != self.n:
                     lib.set_num_threads(n)
+
+
+# ---------------------------------------------------------------------------------------
+# numba kernels: threads only where the work pays for waking them
+# ---------------------------------------------------------------------------------------
+#: Work items (elements, vertices, samples) below which a kernel runs on one thread.
+#: Waking numba's thread pool costs ~10-20 us of wall time per kernel launch; a reduced step
+#: launches several, and on a 1-domain 12-DOF model they made the step 20 % slower than
+#: the loops they replaced. warmup.py sets it to 0 once, so both variants get compiled.
+SERIAL_BELOW = 2048
+
+
+def serial_twin(kernel):
+    """The numba kernel `kernel` (parallel=True) compiled again without threads (prange
+    runs as range). It gets its own name, `<name>_serial`: numba's on-disk cache keys a
+    kernel on its qualified name and source, not on the parallel flag, so the two
+    variants would otherwise load each other's machine code."""
+    import types
+    from numba import njit
+    f = kernel.py_func
+    g = types.FunctionType(f.__code__, f.__globals__, f.__name__ + "_serial", f.__defaults__, f.__closure__)
+    g.__qualname__ = f.__qualname__ + "_serial"
+    g.__module__ = f.__module__
+    g.__doc__ = f.__doc__
+    return njit(cache=True)(g)
+
+
+def pick(kernel, twin, n_items):
+    """kernel for n_items >= SERIAL_BELOW work items, else its serial twin."""
+    return kernel if n_items >= SERIAL_BELOW else twin

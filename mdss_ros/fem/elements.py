@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from ..threads import pick, serial_twin
 from .material_kernels import WORK_LEN, material_point_ws
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
@@ -121,6 +122,9 @@ def element_kernel(x, tets, grads, volume, kind_id, params, want_hessian, projec
                                                                 + T[3 * i + 2, b, k] * g2)
 
 
+element_kernel_serial = serial_twin(element_kernel)
+
+
 def element_forces(x, tets, geom, material, want_hessian=True, project=False, out=None):
     """Evaluate every element.
 
@@ -132,9 +136,9 @@ def element_forces(x, tets, geom, material, want_hessian=True, project=False, ou
     m = len(tets)
     buf = out if out is not None else ElementBuffers(m, want_hessian)
     stiff = buf.stiffness if want_hessian else np.empty((1, 12, 12))
-    element_kernel(np.ascontiguousarray(x, dtype=np.float64), tets, geom.grads, geom.volume,
-                   material.kind_id, material.params, want_hessian, project,
-                   buf.energy, buf.forces, stiff)
+    pick(element_kernel, element_kernel_serial, m)(
+        np.ascontiguousarray(x, dtype=np.float64), tets, geom.grads, geom.volume, material.kind_id,
+        material.params, want_hessian, project, buf.energy, buf.forces, stiff)
     return buf.energy, buf.forces, (stiff if want_hessian else None)
 
 

@@ -24,6 +24,8 @@ block between subspace DOFs and the full-space DOFs that touch a coupling elemen
 import numpy as np
 from numba import njit, prange
 
+from ..threads import pick, serial_twin
+
 
 def skew_batch(p):
     """[p]x for p (n, 3): (n, 3, 3)."""
@@ -367,6 +369,12 @@ def project_sums(J, f_sum, row_dom, sizes, offsets, G):
             G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
 
 
+accumulate_KJ_serial = serial_twin(accumulate_KJ)
+gather_entry_J_serial = serial_twin(gather_entry_J)
+project_pairs_serial = serial_twin(project_pairs)
+interface_jacobian_serial = serial_twin(interface_jacobian)
+
+
 class TwoPhaseProjection:
     """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
     phases: per-vertex K J and force sums (accumulate_KJ), then one GEMM per domain pair,
@@ -413,9 +421,10 @@ class TwoPhaseProjection:
         if self._buffers is None or self._buffers[0].shape != shape:
             self._buffers = (np.empty(shape), np.empty(shape), np.empty((len(self.ptr) - 1, 3)))
         KJ, JE, f_sum = self._buffers
-        accumulate_KJ(self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries,
-                      KJ, f_sum)
+        n_I, n_e = len(self.ptr) - 1, len(self.entry_vertex)
+        pick(accumulate_KJ, accumulate_KJ_serial, n_I)(
+            self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
         if G is not None:
             project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
-        gather_entry_J(J, self.entry_vertex, JE)
-        project_pairs(self.groups, self.sizes, self.offsets, JE, KJ, A_ss)
+        pick(gather_entry_J, gather_entry_J_serial, n_e)(J, self.entry_vertex, JE)
+        pick(project_pairs, project_pairs_serial, n_e)(self.groups, self.sizes, self.offsets, JE, KJ, A_ss)

@@ -10,6 +10,8 @@ vertex; the per-vertex data come stacked from layout.DomainLayout (U, r_local, r
 import numpy as np
 from numba import njit, prange
 
+from ..threads import pick, serial_twin
+
 
 @njit(cache=True, parallel=True)
 def positions_kernel(rows, ids, U, r_local, row_domain, q, R, c, x_full, out):
@@ -42,11 +44,14 @@ def positions_kernel(rows, ids, U, r_local, row_domain, q, R, c, x_full, out):
             out[i, a] = c[k, a] + R[k, a, 0] * p0 + R[k, a, 1] * p1 + R[k, a, 2] * p2
 
 
+positions_kernel_serial = serial_twin(positions_kernel)
+
+
 def positions(layout, ids, q, frames, x_full):
     """World positions (len(ids), 3) of global vertex ids at state (q, frames, x_full)."""
     ids = np.ascontiguousarray(ids, dtype=np.int64)
     out = np.empty((len(ids), 3))
-    positions_kernel(layout.vertex_row[ids], ids, layout.U, layout.r_local, layout.row_domain,
+    pick(positions_kernel, positions_kernel_serial, len(ids))(layout.vertex_row[ids], ids, layout.U, layout.r_local, layout.row_domain,
                      np.ascontiguousarray(q), np.ascontiguousarray(frames.R), np.ascontiguousarray(frames.c),
                      np.ascontiguousarray(x_full), out)
     return out

@@ -32,12 +32,13 @@ from ..fem.elements import element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 from ..loads import sparse_loads
+from ..threads import pick
 from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
 from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
 from . import reconstruct
 from .block_cholesky import BlockCholesky
-from .coupling import (TwoPhaseProjection, interface_jacobian, project_coupling_full, project_coupling_left,
-                       project_forces, skew_batch, spring_forces)
+from .coupling import (TwoPhaseProjection, interface_jacobian, interface_jacobian_serial, project_coupling_full,
+                       project_coupling_left, project_forces, skew_batch, spring_forces)
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, fictitious_forces, omega_B2_omega
 from .layout import DomainLayout
@@ -633,8 +634,9 @@ class ReducedModel:
         U, r_loc, row_dom = self._iface_basis
         J = np.empty((len(self.iface), 3, self.s_max))
         x = np.empty((len(self.iface), 3))
-        interface_jacobian(U, r_loc, row_dom, L.r, L.movable, np.ascontiguousarray(q), np.ascontiguousarray(frames.R),
-                           np.ascontiguousarray(frames.c), J, x)
+        pick(interface_jacobian, interface_jacobian_serial, len(U))(
+            U, r_loc, row_dom, L.r, L.movable, np.ascontiguousarray(q), np.ascontiguousarray(frames.R),
+            np.ascontiguousarray(frames.c), J, x)
         full_rows = np.flatnonzero(self.J_full)
         J[full_rows] = self.J_static[full_rows]
         x[full_rows] = self.x_full_state[self.iface[full_rows]]

@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..fem.material_kernels import WORK_LEN, material_point_ws
+from ..threads import pick, serial_twin
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
 # (or a cleared NUMBA_CACHE_DIR). Last material change: neo-Hookean makes one scratch view, not thirteen.
@@ -209,10 +210,7 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
                         WG_out[d, s, a, b] = w * G[d, s, a, b]
 
 
-# The same kernel compiled without threads: for a few hundred samples, waking the thread
-# pool costs more than the work (a 1-domain cantilever: 72 us a call in parallel).
-stacked_kernel_serial = njit(cache=True)(stacked_kernel.py_func)
-SERIAL_SAMPLES = 512
+stacked_kernel_serial = serial_twin(stacked_kernel)
 
 
 class StackedSamples:
@@ -244,9 +242,9 @@ class StackedSamples:
         D, s, _, r = self.G.shape
         m = self.material
         sampled_buffers = (self.WG, self.CG) if want_hessian else (np.empty((D, 1, 9, r)),) * 2
-        kernel = stacked_kernel_serial if D * s <= SERIAL_SAMPLES else stacked_kernel
-        kernel(self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
-               self.energy, self.g, *sampled_buffers)
+        pick(stacked_kernel, stacked_kernel_serial, D * s)(
+            self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
+            self.energy, self.g, *sampled_buffers)
         energy, g = self.energy.sum(1), self.g.sum(1)
         if not want_hessian:
             return energy, g, None
