@@ -76,6 +76,8 @@ def serial_twin(kernel):
     return njit(cache=True)(g)
 
 
-def pick(kernel, twin, n_items):
-    """kernel for n_items >= SERIAL_BELOW work items, else its serial twin."""
-    return kernel if n_items >= SERIAL_BELOW else twin
+def pick(kernel, twin, n_items, weight=1):
+    """kernel when n_items x weight >= SERIAL_BELOW, else its serial twin. weight: the work
+    of one item relative to a vertex reconstruction (an element or a cubature sample with
+    its material law is several)."""
+    return kernel if n_items * weight >= SERIAL_BELOW else twin

@@ -136,7 +136,7 @@ def element_forces(x, tets, geom, material, want_hessian=True, project=False, ou
     m = len(tets)
     buf = out if out is not None else ElementBuffers(m, want_hessian)
     stiff = buf.stiffness if want_hessian else np.empty((1, 12, 12))
-    pick(element_kernel, element_kernel_serial, m)(
+    pick(element_kernel, element_kernel_serial, m, weight=4)(
         np.ascontiguousarray(x, dtype=np.float64), tets, geom.grads, geom.volume, material.kind_id,
         material.params, want_hessian, project, buf.energy, buf.forces, stiff)
     return buf.energy, buf.forces, (stiff if want_hessian else None)

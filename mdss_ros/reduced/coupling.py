@@ -422,7 +422,7 @@ class TwoPhaseProjection:
             self._buffers = (np.empty(shape), np.empty(shape), np.empty((len(self.ptr) - 1, 3)))
         KJ, JE, f_sum = self._buffers
         n_I, n_e = len(self.ptr) - 1, len(self.entry_vertex)
-        pick(accumulate_KJ, accumulate_KJ_serial, n_I)(
+        pick(accumulate_KJ, accumulate_KJ_serial, n_I, weight=4)(
             self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
         if G is not None:
             project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)

@@ -242,7 +242,7 @@ class StackedSamples:
         D, s, _, r = self.G.shape
         m = self.material
         sampled_buffers = (self.WG, self.CG) if want_hessian else (np.empty((D, 1, 9, r)),) * 2
-        pick(stacked_kernel, stacked_kernel_serial, D * s)(
+        pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
             self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
             self.energy, self.g, *sampled_buffers)
         energy, g = self.energy.sum(1), self.g.sum(1)
