@@ -42,6 +42,7 @@ from .coupling import (TwoPhaseProjection, interface_jacobian, interface_jacobia
 from .domains import FullDomain, build_subspace_domain
 from .frames import FrameState, fictitious_forces, omega_B2_omega
 from .layout import DomainLayout
+from .measure import frame_measure, inverted_samples
 from .sampled_forces import StackedSamples
 
 
@@ -1272,31 +1273,17 @@ class ReducedModel:
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
         with np.errstate(all="ignore"):
+            L = self.layout
+            out = np.empty(4)
+            frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, L.movable, L.total_mass, L.inertia0, L.B1,
+                          L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
             # x_full / v_full hold every vertex but only full-space rows are state: checking
             # them on a model without full-space domains was a third of this measure.
-            finite = bool(np.isfinite(self.q).all() and np.isfinite(self.qd).all()
-                          and np.isfinite(fr.c).all() and np.isfinite(fr.R).all() and np.isfinite(fr.v).all()
-                          and np.isfinite(fr.w).all()
-                          and (not self.F or (np.isfinite(self.x_full).all() and np.isfinite(self.v_full).all())))
+            finite = bool(out[0]) and (not self.F or (np.isfinite(self.x_full).all()
+                                                      and np.isfinite(self.v_full).all()))
             if not finite:
                 return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
-            L = self.layout
-            q, qd = self.q, self.qd
-            mv = L.movable
-            kinetic = 0.5 * float((qd * qd).sum())
-            if len(L.movers):
-                w = np.einsum("dji,dj->di", fr.R, fr.w)
-                spin = (0.5 * L.total_mass * (fr.v * fr.v).sum(1)
-                        + 0.5 * np.einsum("di,dij,dj->d", w, L.inertia(q), w)
-                        + ((np.einsum("da,dabk->dbk", q, L.W) * qd[:, :, None]).sum(1) * w).sum(1))
-                kinetic += float(spin[mv].sum())
-            qn, qdn = np.sqrt((q * q).sum(1)), np.sqrt((qd * qd).sum(1))
-            speeds = np.where(mv, np.sqrt((fr.v * fr.v).sum(1)) + np.sqrt((fr.w * fr.w).sum(1))
-                              * (L.rho + L.sigma * qn) + L.sigma * qdn, L.sigma * qdn)
-            speed = float(speeds.max()) if len(speeds) else 0.0
-            moment = (L.total_mass[:, None] * fr.c
-                      + np.einsum("dij,dj->di", fr.R, L.mass_r + np.einsum("dia,da->di", L.mass_moment, q)))
-            grav = -float((moment @ g).sum())
+            kinetic, grav, speed = float(out[1]), float(out[2]), float(out[3])
             if self.F:
                 m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
                 kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
@@ -1399,7 +1386,7 @@ class ReducedModel:
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
         from ..state_measure import inverted_tets
-        n = self.samples.inverted(self.q) if self.samples is not None else 0
+        n = inverted_samples(self.samples.G, self.q, self.samples.valid) if self.samples is not None else 0
         x_I = None
         if self.coupling_kind == "element":
             c = self._start_eval

@@ -250,12 +250,3 @@ class StackedSamples:
             return energy, g, None
         K = np.matmul(self.WG.reshape(D, s * 9, r).transpose(0, 2, 1), self.CG.reshape(D, s * 9, r))
         return energy, g, K
-
-    def inverted(self, q):
-        """Samples with det F <= 0 (or not finite) at q (D, r_max): the guard's count."""
-        D, s, _, r = self.G.shape
-        F = (self.G.reshape(D, s * 9, r) @ q[:, :, None]).reshape(D, s, 9)[self.valid]
-        F[:, [0, 4, 8]] += 1.0
-        det = (F[:, 0] * (F[:, 4] * F[:, 8] - F[:, 5] * F[:, 7]) - F[:, 1] * (F[:, 3] * F[:, 8] - F[:, 5] * F[:, 6])
-               + F[:, 2] * (F[:, 3] * F[:, 7] - F[:, 4] * F[:, 6]))
-        return int(np.count_nonzero(~(det > 0)))
