@@ -129,6 +129,7 @@ class StabilityGuard:
         self.model = model
         self.tets = np.asarray(tets)
         self.settings = settings or GuardSettings()
+        self._ladder_for = None
         self.reset()
 
     def reset(self):
@@ -218,15 +219,7 @@ class StabilityGuard:
         self._work = 0.0
         before = self._current(gravity, step_count)
         snap = save()
-        newton = s.newton_iterations if s.newton_iterations > self.model.newton_iterations else None
-        # Reduced models that integrate fictitious forces explicitly get them implicit on retries.
-        implicit = self.model.fictitious == "explicit"
-        ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
-            ([(1, newton, True)] if implicit else []) + \
-            [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
-        # The last rung may project energy (module docstring): the most careful integration
-        # first, the projection only for what is left of the energy it created.
-        ladder = [rung + (s.energy_projection and i == len(ladder) - 1,) for i, rung in enumerate(ladder)]
+        ladder = self._ladder()
         first_reason, best = None, None
         for attempt, (n_sub, newton, implicit, project) in enumerate(ladder):
             if attempt:
@@ -343,13 +336,34 @@ class StabilityGuard:
         run_scale = max(run_scale, self._run_scale(untangled, W))
         return untangled.total - E0 - W <= 0.5 * self.settings.energy_growth * run_scale
 
+    def _ladder(self):
+        """The retries, most careful last: (sub-steps, Newton iterations or None, implicit
+        fictitious forces, energy projection) per rung. It depends on the settings and on the
+        model's own iterations and fictitious treatment, so it is built once."""
+        key = (self.model.newton_iterations, self.model.fictitious)
+        if self._ladder_for is None or self._ladder_for[0] != key:
+            s = self.settings
+            newton = s.newton_iterations if s.newton_iterations > key[0] else None
+            # Reduced models that integrate fictitious forces explicitly get them implicit on retries.
+            implicit = key[1] == "explicit"
+            ladder = [(1, None, False)] + ([(1, newton, False)] if newton else []) + \
+                ([(1, newton, True)] if implicit else []) + \
+                [(n, newton, implicit) for n in _powers_of_two(2, s.max_substeps)]
+            # The last rung may project energy (module docstring): the most careful integration
+            # first, the projection only for what is left of the energy it created.
+            ladder = [rung + (s.energy_projection and i == len(ladder) - 1,) for i, rung in enumerate(ladder)]
+            self._ladder_for = (key, ladder)
+        return self._ladder_for[1]
+
     def _attempt(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False, project=False):
         """Run n_sub sub-steps (optionally with more Newton iterations and implicit fictitious
         forces), judging each; project=True: a sub-step with only energy signs gets an energy
         projection and is judged again (self._projected counts them: (sub-steps, J removed)).
         Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
         model = self.model
-        options = StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None)
+        # The first rung is the model's own step: no options to apply.
+        options = (None if n_sub == 1 and not newton and not implicit else
+                   StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None))
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
         self._work = 0.0
         self._projected = (0, 0.0)
