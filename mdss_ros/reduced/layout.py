@@ -129,10 +129,6 @@ class DomainLayout:
             out[k, :len(a)] = a
         return out
 
-    def unpad(self, a):
-        """(D, r_max) as a list of D arrays (r_k,) (reports, tests)."""
-        return [a[k, :rk].copy() for k, rk in enumerate(self.r)]
-
     # ------------------------------------------------------------------ generalised vectors
     def gather(self, Q):
         """Modal rows of a generalised vector Q (n_gen,) as (D, r_max), zero padded."""

@@ -10,6 +10,7 @@ vertex; the per-vertex data come stacked from layout.DomainLayout (U, r_local, r
 import numpy as np
 from numba import njit, prange
 
+from ..rotations import cross
 from ..threads import pick, serial_twin
 
 
@@ -66,5 +67,5 @@ def velocities(layout, x, qd, frames, v_full):
     local = np.einsum("lia,la->li", layout.U[rows[sub]], qd[k])
     d = x[sub] - frames.c[k]
     w, v = frames.w[k], frames.v[k]
-    out[sub] = v + np.cross(w, d) + np.einsum("lij,lj->li", frames.R[k], local)
+    out[sub] = v + cross(w, d) + np.einsum("lij,lj->li", frames.R[k], local)
     return out
