@@ -415,7 +415,7 @@ def _check_colliders(data, source, base_dir):
         if not isinstance(spec, dict) or spec.get("shape") != "mesh":
             continue
         where = f"{source}: colliders.{name}"
-        allowed = set(MESH_KEYS) | {"shape", "position", "orientation", "reach"}
+        allowed = set(MESH_KEYS) | {"shape", "position", "orientation", "reach", "friction"}
         unknown = sorted(set(spec) - allowed)
         if unknown:
             raise SceneError(f"{where}: unknown key(s) {unknown} for a mesh (allowed: {sorted(allowed)})")

@@ -337,6 +337,8 @@ class Simulator:
             starts = {name: self._collider_start.get(name, targets[name]) for name in targets}
             for k in range(1, n_sub + 1):
                 a = k / n_sub
+                spec["starts"] = [(c.position.copy(), c.orientation.copy()) if k > 1 else starts[name]
+                                  for name, c in self.colliders.items()]
                 for name, c in self.colliders.items():
                     (p0, q0), (p1, q1) = starts[name], targets[name]
                     q = (1 - a) * q0 + a * (q1 if np.dot(q0, q1) >= 0 else -q1)
@@ -356,9 +358,13 @@ class Simulator:
         # Round colliders press into faces between vertices; boxes and planes are left to
         # vertex contacts (a box edge can still cut a coarse face between two vertices).
         round_ = any(c.shape in ("sphere", "capsule") for c in self.colliders.values())
-        return {"colliders": list(self.colliders.values()), "vertices": self.body.surface.vertex_ids,
+        colliders = list(self.colliders.values())
+        # Start poses of this (sub-)step: a moving collider drags what sticks to it (friction.py).
+        starts = [self._collider_start.get(name) for name in self.colliders]
+        return {"colliders": colliders, "vertices": self.body.surface.vertex_ids,
                 "margin": self._contact_margin,
-                "triangles": self.body.surface.triangles if round_ else None}
+                "triangles": self.body.surface.triangles if round_ else None,
+                "friction": [c.friction for c in colliders], "starts": starts}
 
     def contacts(self):
         """Active contacts of the last step: (k, 10) rows x y z nx ny nz depth fx fy fz

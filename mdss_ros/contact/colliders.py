@@ -7,9 +7,12 @@ A collider is declared in the scene's `colliders` map and posed by the timeline,
       ball:  {shape: sphere, radius: 0.05, position: [0, 0, 0.3]}
       rod:   {shape: capsule, radius: 0.02, half_height: 0.1, orientation: [0, 0, 0, 1]}
       block: {shape: box, half_extents: [0.1, 0.1, 0.05]}
-      floor: {shape: plane}                      # the local z = 0 plane, normal +z
+      floor: {shape: plane, friction: 0.5}       # the local z = 0 plane, normal +z; Coulomb mu
       finger: {shape: mesh, file: finger.obj, scale: 0.001}   # closed surface: contact/mesh_sdf.py
       tool:  {shape: sphere, radius: 0.02, reach: {sphere: {center: [0, 0, 0.1], radius: 0.05}}}
+
+`friction` (optional): the Coulomb coefficient, a number or {static: mu_s, kinetic: mu_k};
+default 0, frictionless (contact/friction.py).
 
 `reach` (optional, a vertex selector) marks the part of the body the collider can touch;
 in a reduced model it becomes a full-space domain `<name>_reach` (scene.model_config).
@@ -57,6 +60,7 @@ class Collider:
     position: np.ndarray = field(default_factory=lambda: np.zeros(3))
     orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     face_contacts: bool = True
+    friction: tuple = (0.0, 0.0)  # Coulomb (static, kinetic); (0, 0) is frictionless (contact/friction.py)
     sdf: object = None           # a mesh collider's sampled field (contact.mesh_sdf.MeshSDF)
 
     def set_pose(self, position, orientation=(0.0, 0.0, 0.0, 1.0)):
@@ -216,7 +220,7 @@ def make_collider(name, spec, base_dir=None, cache=None, memo=None):
     shape = spec.get("shape")
     if shape not in SHAPES:
         raise SceneError(f"{where}.shape: {shape!r} is not one of {', '.join(SHAPES)}")
-    allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach"} | (
+    allowed = set(SHAPES[shape]) | {"shape", "position", "orientation", "reach", "friction"} | (
         {"face_contacts"} if shape in ("sphere", "capsule") else set()) | (
         set(MESH_KEYS) if shape == "mesh" else set())
     unknown = sorted(set(spec) - allowed)
@@ -227,6 +231,12 @@ def make_collider(name, spec, base_dir=None, cache=None, memo=None):
         if not isinstance(spec["face_contacts"], bool):
             raise SceneError(f"{where}.face_contacts: expected true or false, got {spec['face_contacts']!r}")
         c.face_contacts = spec["face_contacts"]
+    if "friction" in spec:
+        from .friction import parse_friction
+        try:
+            c.friction = parse_friction(where, spec["friction"])
+        except ValueError as err:
+            raise SceneError(str(err)) from err
     for key in SHAPES[shape]:
         if key not in spec:
             raise SceneError(f"{where}.{key}: required for a {shape}")

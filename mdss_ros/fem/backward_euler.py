@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..contact.unilateral import find_triangle_contacts
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 
 
@@ -60,46 +61,67 @@ class BackwardEuler:
 
     def _contact_rows(self, contact, x, v):
         """Constraint data of candidate contacts: (vertices, C (m, n_free) sparse CSR, phi,
-        normals, which). C is sparse because candidates are many on fine meshes (a dense
-        C of 1000 rows x 100K DOFs would be 800 MB)."""
+        normals, which, friction). C is sparse because candidates are many on fine meshes
+        (a dense C of 1000 rows x 100K DOFs would be 800 MB). friction is None, or (C3
+        (3m, n_free) with rows n, t1, t2 per contact, g3 (3m,) the rows' constant part:
+        phi and minus the collider's own tangential displacement, mu_s, mu_k (m,),
+        tangents (m, 2, 3)) when a collider has a friction coefficient (contact/friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, tangent_basis
         from ..contact.unilateral import find_contacts
         m, dt = self.model, self.dt
         ids = contact["vertices"]
         verts, which, phi, normals = find_contacts(contact["colliders"], x[ids], x[ids] + dt * v[ids],
                                                    contact["margin"])
         verts = ids[verts]
-        dofs = m.pattern.free_dof[3 * verts[:, None] + np.arange(3)]          # (k, 3), -1 if pinned
-        keep = (dofs >= 0).all(axis=1)
-        verts, which, phi, normals, dofs = verts[keep], which[keep], phi[keep], normals[keep], dofs[keep]
-        rows = [np.repeat(np.arange(len(verts)), 3)], [dofs.ravel()], [(dt * normals).ravel()]
+        # A contact is a weighted point of up to three vertices: a vertex (weights 1, 0, 0)
+        # or a sphere-face point (barycentric weights of its triangle's corners).
+        corners = np.repeat(verts[:, None], 3, axis=1)
+        weights = np.zeros((len(verts), 3))
+        weights[:, 0] = 1.0
+        # A pinned vertex cannot be pushed out: its constraint would be infeasible.
+        keep = (m.pattern.free_dof[3 * verts[:, None] + np.arange(3)] >= 0).all(axis=1)
+        verts, which, phi, normals, corners, weights = (a[keep] for a in (verts, which, phi, normals, corners,
+                                                                          weights))
         if contact.get("triangles") is not None:
-            verts, phi, normals, which = self._triangle_rows(contact, x, rows, verts, phi, normals, which)
-        C = sp.csr_matrix((np.concatenate(rows[2]), (np.concatenate(rows[0]), np.concatenate(rows[1]))),
-                          shape=(len(verts), m.n_free))
-        return verts, C, phi, normals, which
+            t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x[ids],
+                                                                      contact["triangles"], contact["margin"])
+            if len(t_idx):
+                t_corners = ids[contact["triangles"][t_idx]]                 # (k, 3) global ids
+                # A face contact is reported at its triangle's nearest corner.
+                verts = np.concatenate([verts, t_corners[np.arange(len(t_idx)), bary.argmax(axis=1)]])
+                which, phi = np.concatenate([which, t_which]), np.concatenate([phi, t_phi])
+                normals = np.concatenate([normals, t_n])
+                corners, weights = np.concatenate([corners, t_corners]), np.concatenate([weights, bary])
+        C = self._rows_along(normals[:, None, :], corners, weights)
+        friction = None
+        mu = coefficients(contact, which)
+        if mu is not None and len(verts):
+            tangents = tangent_basis(normals)
+            C3 = self._rows_along(np.concatenate([normals[:, None, :], tangents], axis=1), corners, weights)
+            g3 = np.zeros((len(verts), 3))
+            g3[:, 0] = phi
+            g3[:, 1:] = collider_slip(contact, which, x[verts], tangents)
+            friction = (C3, g3.ravel(), mu[0], mu[1], tangents)
+        return verts, C, phi, normals, which, friction
 
-    def _triangle_rows(self, contact, x, rows, verts, phi, normals, which):
-        """Append sphere-face contacts to the triplets `rows` (row, col, value lists): row
-        dt n^T sum_i b_i (free DOFs of vertex i); the contact 'vertex' of such a row is
-        reported as the triangle's nearest corner."""
-        from ..contact.unilateral import find_triangle_contacts
+    def _rows_along(self, directions, corners, weights):
+        """Rows (k r, n_free) CSR, row l r + j = dt d_lj^T sum_a w_la (DOFs of vertex a)
+        for directions (k, r, 3), corners (k, 3) vertex ids, weights (k, 3); pinned DOFs
+        and zero weights are left out."""
         m, dt = self.model, self.dt
-        ids = contact["vertices"]
-        tris = contact["triangles"]
-        t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x[ids], tris,
-                                                                  contact["margin"])
-        if len(t_idx) == 0:
-            return verts, phi, normals, which
-        corners = ids[tris[t_idx]]                                           # (k, 3) global ids
-        row = len(verts) + np.arange(len(t_idx))
-        for a in range(3):
-            d = m.pattern.free_dof[3 * corners[:, a, None] + np.arange(3)]
-            ok = (d >= 0).all(axis=1)
-            rows[0].append(np.repeat(row[ok], 3))
-            rows[1].append(d[ok].ravel())
-            rows[2].append((dt * bary[ok, a, None] * t_n[ok]).ravel())
-        return (np.concatenate([verts, corners[np.arange(len(t_idx)), bary.argmax(axis=1)]]),
-                np.concatenate([phi, t_phi]), np.concatenate([normals, t_n]), np.concatenate([which, t_which]))
+        k, r = directions.shape[:2]
+        dofs = m.pattern.free_dof[3 * corners[:, :, None] + np.arange(3)]         # (k, 3, 3) corner, axis
+        rows = np.broadcast_to((np.arange(k)[:, None] * r + np.arange(r))[:, :, None, None], (k, r, 3, 3))
+        cols = np.broadcast_to(dofs[:, None], (k, r, 3, 3))
+        vals = dt * weights[:, None, :, None] * directions[:, :, None, :]
+        ok = (cols >= 0) & (vals != 0.0)
+        return sp.csr_matrix((vals[ok], (rows[ok], cols[ok])), shape=(k * r, m.n_free))
+
+    @staticmethod
+    def _contact_force(rows, lam):
+        """C^T lam: the contact forces' generalised force (n_free,), frictional or not."""
+        friction = rows[5]
+        return rows[1].T @ lam if friction is None else friction[0].T @ lam.ravel()
 
     def step(self, x, v, f_ext, contact=None):
         """Advance one step. x, v, f_ext: (n_verts, 3). Returns (x', v').
@@ -107,13 +129,14 @@ class BackwardEuler:
         contact: None or {"colliders": [...], "vertices": candidate ids, "margin": m};
         the contact forces found are left in self.contact (see mdss_ros.contact.unilateral).
         """
+        from ..contact.friction import frictional_correction
         from ..contact.unilateral import contact_correction
         m, dt, s = self.model, self.dt, self.settings
         self.contact = None
         rows = self._contact_rows(contact, x, v) if contact else None
         if rows is not None and len(rows[0]) == 0:
             rows = None
-        lam = np.zeros(0 if rows is None else len(rows[0]))
+        lam = np.zeros(0 if rows is None else (len(rows[0]), 3) if rows[5] is not None else len(rows[0]))
         t_asm = t_fac = t_sol = 0.0
         v0 = m.free(v)
         f_ext_free = m.free(f_ext)
@@ -135,7 +158,7 @@ class BackwardEuler:
                 D = s.alpha * m.M + s.beta * K
             r = m.M @ (vk - v0) + dt * (D @ vk + m.free(f_int) - f_ext_free)
             t_asm += time.perf_counter() - t0
-            r_norm = float(np.linalg.norm(r - (rows[1].T @ lam if rows is not None else 0.0)))
+            r_norm = float(np.linalg.norm(r - (self._contact_force(rows, lam) if rows is not None else 0.0)))
             if r0_norm is None:
                 r0_norm = r_norm
             if r_norm <= s.tolerance * max(r0_norm, 1e-300) and k > 0:
@@ -159,17 +182,23 @@ class BackwardEuler:
             dv = self.solver.solve(-r)
             if rows is not None:
                 # Contact: A dv = -r + C^T lam with C (vk + dv) + phi >= 0, lam >= 0.
-                _, C, phi, _, _ = rows
+                _, C, phi, _, _, friction = rows
                 # Face and vertex rows can be dependent (a face point near a vertex): a
                 # 1e-9 relative diagonal picks the least-norm split (unilateral.py).
-                lam, corr, lcp = contact_correction(
-                    self.solver.solve, C, C @ (vk + dv) + phi,
-                    regularize=1e-9 if contact.get("triangles") is not None else 0.0)
+                regularize = 1e-9 if contact.get("triangles") is not None else 0.0
+                if friction is None:
+                    lam, corr, lcp = contact_correction(self.solver.solve, C, C @ (vk + dv) + phi,
+                                                        regularize=regularize)
+                else:
+                    # The same with Coulomb friction: three rows per contact (friction.py).
+                    C3, g3, mu_s, mu_k, _ = friction
+                    lam, corr, lcp = frictional_correction(self.solver.solve, C3, C3 @ (vk + dv) + g3, mu_s, mu_k,
+                                                           regularize=regularize, lam_guess=lam if k else None)
                 dv = dv + corr
                 if k == 0:
                     # A body at rest pushed only by a collider has r0 = 0, which no residual
                     # meets: measure the tolerance against the contact forces' size instead.
-                    r0_norm = max(r0_norm, float(np.linalg.norm(C.T @ lam)))
+                    r0_norm = max(r0_norm, float(np.linalg.norm(self._contact_force(rows, lam))))
             t_fac += t1 - t0
             t_sol += time.perf_counter() - t1
             iterations += 1
@@ -206,16 +235,31 @@ class BackwardEuler:
 
 
 def contact_record(colliders, rows, lam, x_new):
-    """What a step reports of its contacts: the active rows (lam > 0) of the candidates
-    rows = (vertices, C, phi, normals, which) with their forces lam n, points and depths
-    at the end-of-step positions x_new (n_verts, 3). Loops over colliders, not vertices."""
-    verts, _, _, normals, which = rows
+    """What a step reports of its contacts: the active rows (lam_n > 0) of the candidates
+    rows = (vertices, C, phi, normals, which, friction) with their forces (normal lam_n n
+    plus friction lam_t1 t1 + lam_t2 t2), points and depths at the end-of-step positions
+    x_new (n_verts, 3); lam (m,) or, with friction, (m, 3). Loops over colliders, not
+    vertices."""
+    verts, _, _, normals, which, friction = rows
     depth = np.zeros(len(verts))
     for c_idx, col in enumerate(colliders):
         sel = which == c_idx
         if sel.any():
             depth[sel] = np.maximum(-col.signed_distance(x_new[verts[sel]])[0], 0.0)
-    active = lam > 0
+    return contact_forces(verts, normals, which, lam, None if friction is None else friction[4],
+                          x_new[verts], depth)
+
+
+def contact_forces(verts, normals, which, lam, tangents, points, depth):
+    """The contact record of the active contacts (lam_n > 0): vertices, normals, which,
+    forces (normal plus friction, on the body), normal_force (k,) and friction (k, 3)
+    apart, points and depth (the given arrays are over all candidates)."""
+    lam = np.asarray(lam)
+    lam_n = lam if lam.ndim == 1 else lam[:, 0]
+    active = lam_n > 0
+    normal = lam_n[active, None] * normals[active]
+    friction = (np.zeros_like(normal) if tangents is None
+                else np.einsum("ki,kij->kj", lam[active, 1:], tangents[active]))
     return {"vertices": verts[active], "normals": normals[active], "which": which[active],
-            "forces": lam[active, None] * normals[active], "points": x_new[verts[active]],
-            "depth": depth[active], "candidates": int(len(verts))}
+            "forces": normal + friction, "normal_force": lam_n[active], "friction": friction,
+            "points": points[active], "depth": depth[active], "candidates": int(len(verts))}

@@ -75,6 +75,7 @@ class RK4(BackwardEuler):
         return a / self._m
 
     def step(self, x, v, f_ext, contact=None):
+        from ..contact.friction import frictional_correction
         from ..contact.unilateral import contact_correction
         m, dt, s = self.model, self.dt, self.settings
         t0 = time.perf_counter()
@@ -108,11 +109,16 @@ class RK4(BackwardEuler):
             # the unconstrained end positions (x + dt v_pred with v_pred = (x* - x) / dt).
             rows = self._contact_rows(contact, x, (x_new - x) / dt)
             if len(rows[0]):
-                verts, C, phi, normals, which = rows
-                g = C @ ((xf - m.free(x)) / dt) + phi            # phi + n . (x* - x)
-                lam, corr, lcp = contact_correction(lambda B: B / (self._m[:, None] if B.ndim == 2 else self._m),
-                                                    C, g, regularize=1e-9 if contact.get("triangles") is not None
-                                                    else 0.0)
+                verts, C, phi, normals, which, friction = rows
+                resolve = (lambda B: B / (self._m[:, None] if B.ndim == 2 else self._m))
+                regularize = 1e-9 if contact.get("triangles") is not None else 0.0
+                v_pred = (xf - m.free(x)) / dt
+                if friction is None:                             # g: phi + n . (x* - x)
+                    lam, corr, lcp = contact_correction(resolve, C, C @ v_pred + phi, regularize=regularize)
+                else:
+                    C3, g3, mu_s, mu_k, _ = friction
+                    lam, corr, lcp = frictional_correction(resolve, C3, C3 @ v_pred + g3, mu_s, mu_k,
+                                                           regularize=regularize)
                 vf = vf + corr
                 xf = xf + dt * corr
                 x_new.reshape(-1)[m.pattern.free_dof >= 0] = xf

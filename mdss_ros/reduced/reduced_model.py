@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
+from ..fem.backward_euler import contact_forces
 from ..fem.elements import element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
@@ -916,9 +917,14 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ step
     def _contact_rows(self, contact, gm):
-        """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which),
-        or None. C = dt n^T J_l; under a co-rotating step the rigid part of the vertex
-        velocity, V + W x (x - C), is a constant folded into phi_eff."""
+        """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which,
+        friction), or None. C = dt n^T J_l; under a co-rotating step the rigid part of the
+        vertex velocity, V + W x (x - C), is a constant folded into phi_eff. friction is
+        None (every collider frictionless) or (C3 (3m, n_gen) rows n, t1, t2 per contact,
+        g3 (3m,) their constant part (phi_eff, minus the collider's tangential displacement,
+        the rigid velocity's share), mu_s, mu_k (m,), tangents (m, 2, 3), rigid3 (3m,) the
+        rigid share alone), as in BackwardEuler._contact_rows (contact/friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, tangent_basis
         from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)
@@ -944,53 +950,21 @@ class ReducedModel:
                 key = np.concatenate([key, n_all * n_col + t_idx * n_col + t_which])
         if len(rows) == 0:
             return None
+        friction = coefficients(contact, which)         # None: frictionless, one row per contact
         verts = ids[rows]
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-        blocks = []                                          # (corner rows, columns, values (s, c))
-        L = self.layout
-        vrow = L.vertex_row[verts]
-        n_w = normals * weights[:, None]
-        sel = np.flatnonzero(vrow >= 0)
-        if sel.size:
-            # n^T R U_l = (R^T n)^T U_l per corner, into its domain's modal columns (padding
-            # columns dropped); a movable domain adds [n, (x - c) x n] on its frame's columns.
-            k = L.row_domain[vrow[sel]]
-            n = n_w[sel]
-            vals = np.einsum("li,lib->lb", np.einsum("lj,lji->li", n, self.frames.R[k]), L.U[vrow[sel]])
-            ok = L.mask[k]
-            blocks.append((np.broadcast_to(sel[:, None], ok.shape)[ok], L.q_index[k][ok], vals[ok]))
-            mover = np.full(L.D, -1, dtype=np.int64)
-            mover[L.movers] = np.arange(len(L.movers))
-            m = mover[k] >= 0
-            if m.any():
-                cols = np.hstack([L.lin_index, L.ang_index])[mover[k[m]]]          # (s, 6)
-                frame_vals = np.hstack([n[m], cross(xv[sel[m]] - self.frames.c[k[m]], n[m])])
-                blocks.append((np.repeat(sel[m], 6), cols.ravel(), frame_vals.ravel()))
-        full = np.flatnonzero(vrow < 0)
-        if full.size:
-            dofs = self.full_dof_of_vertex[verts[full]]
-            ok = dofs >= 0
-            blocks.append((np.repeat(full[ok], 3), (self.S + 3 * dofs[ok, None] + np.arange(3)).ravel(),
-                           n_w[full[ok]].ravel()))
-        if self.F:
-            # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
-            # (duplicates, a face's corners, are summed on construction).
-            row_of = np.searchsorted(starts, np.arange(len(group)), side="right") - 1
-            r_idx = row_of[np.concatenate([b[0] for b in blocks])]
-            c_idx = np.concatenate([b[1] for b in blocks])
-            values = np.concatenate([b[2] for b in blocks])
-            C = sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(len(starts), self.n_gen))
-            norms = np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel())
-        else:
-            Cv = np.zeros((len(verts), self.n_gen))             # one row per (contact, corner)
-            for r_idx, c_idx, vals in blocks:                   # at most three blocks (kinds of rows)
-                Cv[r_idx, c_idx] = vals
-            C = Cv if len(starts) == len(group) else np.add.reduceat(Cv, starts, axis=0)
-            C *= self.dt
-            norms = np.linalg.norm(C, axis=1)
+        C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts)
+        norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
+                 else np.linalg.norm(C, axis=1))
+        tangents = None
+        if friction is not None:
+            tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
+            dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
+            C3 = self._rows_along(dirs, verts, xv, starts)
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
+        tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
         movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
@@ -998,21 +972,100 @@ class ReducedModel:
             verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
                                                  which[movable], xv[movable])
             key = key[movable]
+            if tangents is not None:
+                tangents = tangents[movable]
+                C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
         self._contact_rigid = np.zeros(len(phi))          # dt n . (rigid velocity) per row
         if gm is not None:
             Cg, Vg, Wg = gm[:3]
-            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, Vg + cross(Wg, xv - Cg))
+            rigid_v = Vg + cross(Wg, xv - Cg)
+            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
-        return verts, C, phi_eff, normals, which
+        fric = None
+        if friction is not None:
+            mu_s, mu_k = coefficients(contact, which)
+            g3 = np.zeros((len(verts), 3))
+            g3[:, 0] = phi_eff
+            g3[:, 1:] = collider_slip(contact, which, xv, tangents)
+            rigid3 = np.zeros((len(verts), 3))                 # dt (n, t1, t2) . (rigid velocity)
+            rigid3[:, 0] = self._contact_rigid
+            if gm is not None:
+                rigid3[:, 1:] = self.dt * np.einsum("lij,lj->li", tangents, rigid_v)
+                g3[:, 1:] += rigid3[:, 1:]
+            fric = (C3, g3.ravel(), mu_s, mu_k, tangents, rigid3.ravel())
+        return verts, C, phi_eff, normals, which, fric
+
+    def _rows_along(self, dirs, verts, xv, starts):
+        """Constraint rows (m r, n_gen), row l r + j = dt d^T J at contact l along its j-th
+        direction: dirs (k, r, 3) per corner row (weighted: a face point's corners carry
+        their barycentric weights), verts (k,) vertex ids, xv (k, 3) their positions, starts
+        (m,) the first corner row of each contact (corner rows of a contact are adjacent).
+        Dense, or CSR when the model has full-space domains (n_gen large, rows sparse)."""
+        L = self.layout
+        k, r = dirs.shape[:2]
+        vrow = L.vertex_row[verts]
+        blocks = []                                          # (corner rows, direction, columns, values)
+        sel = np.flatnonzero(vrow >= 0)
+        if sel.size:
+            # d^T R U_l = (R^T d)^T U_l per corner, into its domain's modal columns (padding
+            # columns dropped); a movable domain adds [d, (x - c) x d] on its frame's columns.
+            dom = L.row_domain[vrow[sel]]
+            d = dirs[sel]                                                              # (s, r, 3)
+            vals = np.einsum("lri,lib->lrb", np.einsum("lrj,lji->lri", d, self.frames.R[dom]), L.U[vrow[sel]])
+            ok = np.broadcast_to(L.mask[dom][:, None, :], vals.shape)
+            shape = vals.shape
+            blocks.append((np.broadcast_to(sel[:, None, None], shape)[ok],
+                           np.broadcast_to(np.arange(r)[None, :, None], shape)[ok],
+                           np.broadcast_to(L.q_index[dom][:, None, :], shape)[ok], vals[ok]))
+            mover = np.full(L.D, -1, dtype=np.int64)
+            mover[L.movers] = np.arange(len(L.movers))
+            mv = mover[dom] >= 0
+            if mv.any():
+                cols = np.hstack([L.lin_index, L.ang_index])[mover[dom[mv]]]          # (s, 6)
+                arm = (xv[sel[mv]] - self.frames.c[dom[mv]])[:, None, :]
+                frame_vals = np.concatenate([d[mv], cross(np.broadcast_to(arm, d[mv].shape), d[mv])], axis=2)
+                shape = frame_vals.shape                                               # (s, r, 6)
+                blocks.append((np.broadcast_to(sel[mv][:, None, None], shape).ravel(),
+                               np.broadcast_to(np.arange(r)[None, :, None], shape).ravel(),
+                               np.broadcast_to(cols[:, None, :], shape).ravel(), frame_vals.ravel()))
+        full = np.flatnonzero(vrow < 0)
+        if full.size:
+            dofs = self.full_dof_of_vertex[verts[full]]
+            okf = dofs >= 0
+            f_rows = full[okf]
+            shape = (len(f_rows), r, 3)
+            blocks.append((np.broadcast_to(f_rows[:, None, None], shape).ravel(),
+                           np.broadcast_to(np.arange(r)[None, :, None], shape).ravel(),
+                           np.broadcast_to((self.S + 3 * dofs[okf, None] + np.arange(3))[:, None, :], shape).ravel(),
+                           dirs[f_rows].ravel()))
+        m = len(starts)
+        if self.F:
+            # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
+            # (duplicates, a face's corners, are summed on construction).
+            row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
+            r_idx = row_of[np.concatenate([b[0] for b in blocks])] * r + np.concatenate([b[1] for b in blocks])
+            c_idx = np.concatenate([b[2] for b in blocks])
+            values = np.concatenate([b[3] for b in blocks])
+            return sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(m * r, self.n_gen))
+        Cv = np.zeros((k, r, self.n_gen))                   # one row per (corner, direction)
+        for c_rows, c_dir, c_cols, vals in blocks:          # at most three blocks (kinds of rows)
+            Cv[c_rows, c_dir, c_cols] = vals
+        C = Cv if m == k else np.add.reduceat(Cv, starts, axis=0)
+        C = C.reshape(m * r, self.n_gen)
+        C *= self.dt
+        return C
 
     def _contact_solve(self, rows, Q, dQ):
-        """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py)."""
+        """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py),
+        or with friction the Coulomb problem on three rows per contact (friction.py).
+        Returns (dQ + correction, lam (m,) or (m, 3))."""
+        from ..contact.friction import frictional_correction
         from ..contact.unilateral import contact_correction
-        verts, C, phi, _, which = rows
+        verts, C, phi, _, which, friction = rows
         # The LCP's first guess: the rows active in the last Newton iteration, or in the last
         # two steps (a resting or pressed body keeps most of its contacts, and a coarse patch
         # under a held collider can swap its load between vertex and face rows every other
@@ -1020,16 +1073,30 @@ class ReducedModel:
         keys = self._contact_row_keys
         history = self._contact_history                          # active keys per step, newest last
         same_step = self._contact_rows_seen is rows
+        lam_n = None if not same_step else (self._contact_lam if friction is None else self._contact_lam[:, 0])
         if same_step:
-            hint = self._contact_lam > 0
+            hint = lam_n > 0
         else:
             hint = np.isin(keys, np.concatenate(history)) if history else None
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
-        lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+        if friction is None:
+            lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
+            active = lam > 0
+        else:
+            C3, g3, mu_s, mu_k = friction[:4]
+            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu_s, mu_k,
+                                                    regularize=1e-9, hint=hint,
+                                                    lam_guess=self._contact_lam if same_step else None)
+            active = lam[:, 0] > 0
         self._contact_info = info
-        self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[lam > 0]]
+        self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[active]]
         self._contact_lam, self._contact_rows_seen = lam, rows
         return dQ + corr, lam
+
+    @staticmethod
+    def _contact_force(rows, lam):
+        """C^T lam (n_gen,): the contact forces as generalised forces, frictional or not."""
+        return rows[1].T @ lam if rows[5] is None else rows[5][0].T @ lam.ravel()
 
     def step(self, f_ext, gravity=None, contact=None, options=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
@@ -1125,7 +1192,7 @@ class ReducedModel:
                     if it == 0:
                         # A body at rest pushed only by a collider has r0 = 0: measure the
                         # tolerance against the contact forces' size instead.
-                        r0 = max(r0, float(np.linalg.norm(contact_rows[1].T @ lam)))
+                        r0 = max(r0, float(np.linalg.norm(self._contact_force(contact_rows, lam))))
                 iterations += 1
                 step_len = 1.0
                 if self.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
@@ -1145,7 +1212,7 @@ class ReducedModel:
                 G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
                 r = residual(Q, G)
                 # With contact the converged residual is the contact force C^T lam, not zero.
-                r_c = r - contact_rows[1].T @ lam if contact_rows is not None else r
+                r_c = r - self._contact_force(contact_rows, lam) if contact_rows is not None else r
                 r_last = float(np.linalg.norm(r_c))
                 if r_last <= self.tolerance * max(r0, 1e-300):
                     break
@@ -1156,22 +1223,25 @@ class ReducedModel:
         self.contact = None
         contact_work = 0.0
         if contact_rows is not None:
-            verts, _, _, normals, which = contact_rows
+            verts, _, _, normals, which, friction = contact_rows
             lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
-            active = lam > 0
-            pts = self.positions_of(verts[active])
-            depth = np.zeros(active.sum())
+            lam_n = lam if lam.ndim == 1 else lam[:, 0]
+            pts = self.positions_of(verts)
+            depth = np.zeros(len(verts))
+            active = lam_n > 0
             for c_idx, col in enumerate(contact["colliders"]):
-                sel = which[active] == c_idx
-                if sel.any():
+                sel = np.flatnonzero(active & (which == c_idx))
+                if sel.size:
                     depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
-            self.contact = {"vertices": verts[active], "normals": normals[active], "which": which[active],
-                            "forces": lam[active, None] * normals[active], "points": pts, "depth": depth,
-                            "candidates": int(len(verts))}
+            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[4],
+                                          pts, depth)
             # Work of the contact forces over the step in the step's own terms (the guard's
             # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
             # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
-            contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
+            if friction is None:
+                contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
+            else:
+                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[5]))
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
         residual_ratio = r_last / r0 if r0 > 0 else 0.0
