@@ -366,10 +366,25 @@ class Simulator:
                 "triangles": self.body.surface.triangles if round_ else None,
                 "friction": [c.friction for c in colliders], "starts": starts}
 
-    def contacts(self):
+    def contacts(self, split=False):
         """Active contacts of the last step: (k, 10) rows x y z nx ny nz depth fx fy fz
-        (point on the body, collider normal, penetration depth, force on the body)."""
+        (point on the body, collider normal, penetration depth, force on the body: the
+        normal force plus friction).
+
+        split=True returns the parts apart instead, a dict of arrays over the k contacts:
+        points (k, 3), normals (k, 3), depth (k,), normal_force (k,) (newtons, >= 0, along
+        the normal), friction (k, 3) (tangential, on the body), force (k, 3) (their sum)
+        and collider (k,) names."""
         c = self.model.contact
+        names = list(self.colliders)
+        if split:
+            if not c or len(c["vertices"]) == 0:
+                return {"points": np.zeros((0, 3)), "normals": np.zeros((0, 3)), "depth": np.zeros(0),
+                        "normal_force": np.zeros(0), "friction": np.zeros((0, 3)), "force": np.zeros((0, 3)),
+                        "collider": np.array([], dtype=object)}
+            return {"points": c["points"], "normals": c["normals"], "depth": c["depth"],
+                    "normal_force": c["normal_force"], "friction": c["friction"], "force": c["forces"],
+                    "collider": np.array([names[i] for i in c["which"]], dtype=object)}
         if not c or len(c["vertices"]) == 0:
             return np.zeros((0, 10))
         return np.hstack([c["points"], c["normals"], c["depth"][:, None], c["forces"]])
@@ -400,6 +415,11 @@ class Simulator:
             lines.append(f"contact: built only for the declared colliders: {shapes}; candidates are surface "
                          f"vertices within {self._contact_spec()['margin']:.3g} m (a mean surface edge)"
                          + (f"; {', '.join(faces)} also test surface faces" if faces else ""))
+            rough = [f"{n} (static {c.friction[0]:g}, kinetic {c.friction[1]:g})" for n, c in self.colliders.items()
+                     if c.friction[0] > 0.0]
+            lines.append("friction: " + (f"Coulomb, exact stick, in the implicit step: {', '.join(rough)}; the "
+                                         f"others frictionless" if rough else
+                                         "none (every collider frictionless; colliders.<name>.friction sets mu)"))
             for n, info in self.colliders_inside_at_load.items():
                 lines.append(f"collider {n!r} starts inside the body: " + (
                     f"{info['vertices']} vertices inside it, the deepest {1e3 * info['depth']:.1f} mm"

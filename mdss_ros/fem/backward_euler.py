@@ -64,9 +64,10 @@ class BackwardEuler:
         normals, which, friction). C is sparse because candidates are many on fine meshes
         (a dense C of 1000 rows x 100K DOFs would be 800 MB). friction is None, or (C3
         (3m, n_free) with rows n, t1, t2 per contact, g3 (3m,) the rows' constant part:
-        phi and minus the collider's own tangential displacement, mu_s, mu_k (m,),
-        tangents (m, 2, 3)) when a collider has a friction coefficient (contact/friction.py)."""
-        from ..contact.friction import coefficients, collider_slip, tangent_basis
+        phi and minus the collider's own tangential displacement, mu (m,) static or
+        kinetic by the last step's slip (contact["previous"]), tangents (m, 2, 3)) when a
+        collider has a friction coefficient (contact/friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis
         from ..contact.unilateral import find_contacts
         m, dt = self.model, self.dt
         ids = contact["vertices"]
@@ -101,7 +102,9 @@ class BackwardEuler:
             g3 = np.zeros((len(verts), 3))
             g3[:, 0] = phi
             g3[:, 1:] = collider_slip(contact, which, x[verts], tangents)
-            friction = (C3, g3.ravel(), mu[0], mu[1], tangents)
+            n_col = len(contact["colliders"])
+            friction = (C3, g3.ravel(), effective_mu(*mu, verts * n_col + which, contact.get("previous"), n_col),
+                        tangents)
         return verts, C, phi, normals, which, friction
 
     def _rows_along(self, directions, corners, weights):
@@ -191,8 +194,8 @@ class BackwardEuler:
                                                         regularize=regularize)
                 else:
                     # The same with Coulomb friction: three rows per contact (friction.py).
-                    C3, g3, mu_s, mu_k, _ = friction
-                    lam, corr, lcp = frictional_correction(self.solver.solve, C3, C3 @ (vk + dv) + g3, mu_s, mu_k,
+                    C3, g3, mu, _ = friction
+                    lam, corr, lcp = frictional_correction(self.solver.solve, C3, C3 @ (vk + dv) + g3, mu,
                                                            regularize=regularize, lam_guess=lam if k else None)
                 dv = dv + corr
                 if k == 0:
@@ -218,7 +221,7 @@ class BackwardEuler:
         v_new = m.expand(vk)
         x_new = x + dt * v_new
         if rows is not None:
-            self.contact = contact_record(contact["colliders"], rows, lam, x_new)
+            self.contact = contact_record(contact["colliders"], rows, lam, x_new, lcp.get("w"), dt)
         self.stats = {
             "newton_iterations": iterations,
             "converged": bool(converged or s.max_iterations == 1),
@@ -230,36 +233,52 @@ class BackwardEuler:
             "solve_ms": 1e3 * t_sol,
         }
         if lcp:
-            self.stats.update(contact_rows=lcp["rows"], contact_working_set=lcp["working_set"])
+            self.stats.update(contact_stats(lcp))
         return x_new, v_new
 
 
-def contact_record(colliders, rows, lam, x_new):
+def contact_stats(info):
+    """Step stats of a contact solve (unilateral.contact_correction or
+    friction.frictional_correction): candidates, working set, and with friction the
+    contacts that stick and slip and whether the Coulomb solve reached its tolerance."""
+    out = {"contact_rows": info["rows"], "contact_working_set": info["working_set"]}
+    if "stick" in info:
+        out.update(contact_stick=info["stick"], contact_slip=info["slip"],
+                   contact_unconverged=bool(info.get("unconverged", False)))
+    return out
+
+
+def contact_record(colliders, rows, lam, x_new, w=None, dt=None):
     """What a step reports of its contacts: the active rows (lam_n > 0) of the candidates
     rows = (vertices, C, phi, normals, which, friction) with their forces (normal lam_n n
     plus friction lam_t1 t1 + lam_t2 t2), points and depths at the end-of-step positions
-    x_new (n_verts, 3); lam (m,) or, with friction, (m, 3). Loops over colliders, not
-    vertices."""
+    x_new (n_verts, 3); lam (m,) or, with friction, (m, 3) with w (m, 3) the rows' gap and
+    slip after the step (for the slip speed). Loops over colliders, not vertices."""
     verts, _, _, normals, which, friction = rows
     depth = np.zeros(len(verts))
     for c_idx, col in enumerate(colliders):
         sel = which == c_idx
         if sel.any():
             depth[sel] = np.maximum(-col.signed_distance(x_new[verts[sel]])[0], 0.0)
-    return contact_forces(verts, normals, which, lam, None if friction is None else friction[4],
-                          x_new[verts], depth)
+    return contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
+                          x_new[verts], depth, w, dt)
 
 
-def contact_forces(verts, normals, which, lam, tangents, points, depth):
+def contact_forces(verts, normals, which, lam, tangents, points, depth, w=None, dt=None):
     """The contact record of the active contacts (lam_n > 0): vertices, normals, which,
     forces (normal plus friction, on the body), normal_force (k,) and friction (k, 3)
-    apart, points and depth (the given arrays are over all candidates)."""
+    apart, points and depth (the given arrays are over all candidates); with friction
+    also slip_speed (k,), |w_t| / dt (m/s), which the next step's static or kinetic
+    choice reads (friction.effective_mu)."""
     lam = np.asarray(lam)
     lam_n = lam if lam.ndim == 1 else lam[:, 0]
     active = lam_n > 0
     normal = lam_n[active, None] * normals[active]
     friction = (np.zeros_like(normal) if tangents is None
                 else np.einsum("ki,kij->kj", lam[active, 1:], tangents[active]))
-    return {"vertices": verts[active], "normals": normals[active], "which": which[active],
-            "forces": normal + friction, "normal_force": lam_n[active], "friction": friction,
-            "points": points[active], "depth": depth[active], "candidates": int(len(verts))}
+    record = {"vertices": verts[active], "normals": normals[active], "which": which[active],
+              "forces": normal + friction, "normal_force": lam_n[active], "friction": friction,
+              "points": points[active], "depth": depth[active], "candidates": int(len(verts))}
+    if w is not None:
+        record["slip_speed"] = np.linalg.norm(w[active, 1:], axis=1) / dt
+    return record

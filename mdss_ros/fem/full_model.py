@@ -59,6 +59,8 @@ class VertexState:
                 integ.dt = float(options.dt)
             if options.newton_iterations and saved[1] is not None:
                 settings.max_iterations = max(saved[1], int(options.newton_iterations))
+        if contact:
+            contact = dict(contact, previous=self.contact)   # the last step's slip (friction.effective_mu)
         try:
             self.x, self.v = integ.step(self.x, self.v, f_ext, contact)
         finally:

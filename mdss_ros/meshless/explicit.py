@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from ..fem.backward_euler import BackwardEuler, NewtonSettings, contact_record
+from ..fem.backward_euler import BackwardEuler, NewtonSettings, contact_record, contact_stats
 
 RK4_IMAG_LIMIT = 2.5          # a little inside RK4's 2.83 on the imaginary axis
 SAFETY = 0.8
@@ -116,16 +116,15 @@ class RK4(BackwardEuler):
                 if friction is None:                             # g: phi + n . (x* - x)
                     lam, corr, lcp = contact_correction(resolve, C, C @ v_pred + phi, regularize=regularize)
                 else:
-                    C3, g3, mu_s, mu_k, _ = friction
-                    lam, corr, lcp = frictional_correction(resolve, C3, C3 @ v_pred + g3, mu_s, mu_k,
-                                                           regularize=regularize)
+                    C3, g3, mu, _ = friction
+                    lam, corr, lcp = frictional_correction(resolve, C3, C3 @ v_pred + g3, mu, regularize=regularize)
                 vf = vf + corr
                 xf = xf + dt * corr
                 x_new.reshape(-1)[m.pattern.free_dof >= 0] = xf
                 v_new = m.expand(vf)
-                self.contact = contact_record(contact["colliders"], rows, lam, x_new)
+                self.contact = contact_record(contact["colliders"], rows, lam, x_new, lcp.get("w"), dt)
         self.stats = {"newton_iterations": 0, "converged": True, "residual": 0.0, "projected": False,
                       "line_search_cuts": 0, "substeps": n_sub, "step_ms": 1e3 * (time.perf_counter() - t0)}
         if lcp:
-            self.stats.update(contact_rows=lcp["rows"], contact_working_set=lcp["working_set"])
+            self.stats.update(contact_stats(lcp))
         return x_new, v_new

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
-from ..fem.backward_euler import contact_forces
+from ..fem.backward_euler import contact_forces, contact_stats
 from ..fem.elements import element_forces, tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import NotPositiveDefinite, SparseSolver
@@ -922,9 +922,10 @@ class ReducedModel:
         vertex velocity, V + W x (x - C), is a constant folded into phi_eff. friction is
         None (every collider frictionless) or (C3 (3m, n_gen) rows n, t1, t2 per contact,
         g3 (3m,) their constant part (phi_eff, minus the collider's tangential displacement,
-        the rigid velocity's share), mu_s, mu_k (m,), tangents (m, 2, 3), rigid3 (3m,) the
-        rigid share alone), as in BackwardEuler._contact_rows (contact/friction.py)."""
-        from ..contact.friction import coefficients, collider_slip, tangent_basis
+        the rigid velocity's share), mu (m,) static or kinetic by the last step's slip,
+        tangents (m, 2, 3), rigid3 (3m,) the rigid share alone), as in
+        BackwardEuler._contact_rows (contact/friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis
         from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)
@@ -987,7 +988,8 @@ class ReducedModel:
         self._contact_row_keys = key
         fric = None
         if friction is not None:
-            mu_s, mu_k = coefficients(contact, which)
+            n_col = len(contact["colliders"])
+            mu = effective_mu(*coefficients(contact, which), verts * n_col + which, self.contact, n_col)
             g3 = np.zeros((len(verts), 3))
             g3[:, 0] = phi_eff
             g3[:, 1:] = collider_slip(contact, which, xv, tangents)
@@ -996,7 +998,7 @@ class ReducedModel:
             if gm is not None:
                 rigid3[:, 1:] = self.dt * np.einsum("lij,lj->li", tangents, rigid_v)
                 g3[:, 1:] += rigid3[:, 1:]
-            fric = (C3, g3.ravel(), mu_s, mu_k, tangents, rigid3.ravel())
+            fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel())
         return verts, C, phi_eff, normals, which, fric
 
     def _rows_along(self, dirs, verts, xv, starts):
@@ -1083,8 +1085,8 @@ class ReducedModel:
             lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
             active = lam > 0
         else:
-            C3, g3, mu_s, mu_k = friction[:4]
-            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu_s, mu_k,
+            C3, g3, mu = friction[:3]
+            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu,
                                                     regularize=1e-9, hint=hint,
                                                     lam_guess=self._contact_lam if same_step else None)
             active = lam[:, 0] > 0
@@ -1233,15 +1235,16 @@ class ReducedModel:
                 sel = np.flatnonzero(active & (which == c_idx))
                 if sel.size:
                     depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
-            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[4],
-                                          pts, depth)
+            w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
+            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
+                                          pts, depth, w, self.dt)
             # Work of the contact forces over the step in the step's own terms (the guard's
             # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
             # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
             if friction is None:
                 contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
             else:
-                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[5]))
+                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[4]))
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
         residual_ratio = r_last / r0 if r0 > 0 else 0.0
@@ -1256,8 +1259,7 @@ class ReducedModel:
                       "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
         if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
-            self.stats.update(contact_rows=self._contact_info["rows"],
-                              contact_working_set=self._contact_info["working_set"])
+            self.stats.update(contact_stats(self._contact_info))
         self.timing = {}
         return self.stats
 
