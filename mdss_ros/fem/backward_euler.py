@@ -65,9 +65,10 @@ class BackwardEuler:
         (a dense C of 1000 rows x 100K DOFs would be 800 MB). friction is None, or (C3
         (3m, n_free) with rows n, t1, t2 per contact, g3 (3m,) the rows' constant part:
         phi and minus the collider's own tangential displacement, mu (m,) static or
-        kinetic by the last step's slip (contact["previous"]), tangents (m, 2, 3)) when a
-        collider has a friction coefficient (contact/friction.py)."""
-        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis
+        kinetic by the last step's slip (contact["previous"]), tangents (m, 2, 3), the last
+        step's forces as a first guess (m, 3) or None) when a collider has a friction
+        coefficient (contact/friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis, warm_start
         from ..contact.unilateral import find_contacts
         m, dt = self.model, self.dt
         ids = contact["vertices"]
@@ -103,8 +104,9 @@ class BackwardEuler:
             g3[:, 0] = phi
             g3[:, 1:] = collider_slip(contact, which, x[verts], tangents)
             n_col = len(contact["colliders"])
-            friction = (C3, g3.ravel(), effective_mu(*mu, verts * n_col + which, contact.get("previous"), n_col),
-                        tangents)
+            keys, previous = verts * n_col + which, contact.get("previous")
+            friction = (C3, g3.ravel(), effective_mu(*mu, keys, previous, n_col), tangents,
+                        warm_start(previous, keys, tangents, n_col))
         return verts, C, phi, normals, which, friction
 
     def _rows_along(self, directions, corners, weights):
@@ -194,9 +196,9 @@ class BackwardEuler:
                                                         regularize=regularize)
                 else:
                     # The same with Coulomb friction: three rows per contact (friction.py).
-                    C3, g3, mu, _ = friction
+                    C3, g3, mu, _, last = friction
                     lam, corr, lcp = frictional_correction(self.solver.solve, C3, C3 @ (vk + dv) + g3, mu,
-                                                           regularize=regularize, lam_guess=lam if k else None)
+                                                           regularize=regularize, lam_guess=lam if k else last)
                 dv = dv + corr
                 if k == 0:
                     # A body at rest pushed only by a collider has r0 = 0, which no residual

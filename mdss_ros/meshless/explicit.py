@@ -116,7 +116,7 @@ class RK4(BackwardEuler):
                 if friction is None:                             # g: phi + n . (x* - x)
                     lam, corr, lcp = contact_correction(resolve, C, C @ v_pred + phi, regularize=regularize)
                 else:
-                    C3, g3, mu, _ = friction
+                    C3, g3, mu = friction[:3]
                     lam, corr, lcp = frictional_correction(resolve, C3, C3 @ v_pred + g3, mu, regularize=regularize)
                 vf = vf + corr
                 xf = xf + dt * corr

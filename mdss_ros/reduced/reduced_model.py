@@ -360,7 +360,12 @@ class ReducedModel:
         self._build_interface_maps()
 
     def _build_interface_maps(self):
-        """Static part of J for the interface vertices: generalised columns, full flags."""
+        """Static part of J for the interface vertices: generalised columns, full flags;
+        and each domain's frame columns (D, 6), linear then angular, -1 for a fixed
+        domain (contact rows: reconstruct.contact_rows_kernel)."""
+        L = self.layout
+        self._frame_cols = np.full((L.D, 6), -1, dtype=np.int64)
+        self._frame_cols[L.movers] = np.hstack([L.lin_index, L.ang_index])
         iv = self.iface
         n_I = len(iv)
         self.s_max = max([dom.n_dofs for dom in self.subspace] + [3])
@@ -923,9 +928,9 @@ class ReducedModel:
         None (every collider frictionless) or (C3 (3m, n_gen) rows n, t1, t2 per contact,
         g3 (3m,) their constant part (phi_eff, minus the collider's tangential displacement,
         the rigid velocity's share), mu (m,) static or kinetic by the last step's slip,
-        tangents (m, 2, 3), rigid3 (3m,) the rigid share alone), as in
-        BackwardEuler._contact_rows (contact/friction.py)."""
-        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis
+        tangents (m, 2, 3), rigid3 (3m,) the rigid share alone, the last step's forces as
+        a first guess (m, 3) or None), as in BackwardEuler._contact_rows (friction.py)."""
+        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis, warm_start
         from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)
@@ -956,14 +961,17 @@ class ReducedModel:
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-        C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts)
-        norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
-                 else np.linalg.norm(C, axis=1))
         tangents = None
-        if friction is not None:
+        if friction is None:
+            C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts)
+        else:
+            # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
             dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
             C3 = self._rows_along(dirs, verts, xv, starts)
+            C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
+        norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
+                 else np.linalg.norm(C, axis=1))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
         tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
@@ -989,7 +997,8 @@ class ReducedModel:
         fric = None
         if friction is not None:
             n_col = len(contact["colliders"])
-            mu = effective_mu(*coefficients(contact, which), verts * n_col + which, self.contact, n_col)
+            keys = verts * n_col + which
+            mu = effective_mu(*coefficients(contact, which), keys, self.contact, n_col)
             g3 = np.zeros((len(verts), 3))
             g3[:, 0] = phi_eff
             g3[:, 1:] = collider_slip(contact, which, xv, tangents)
@@ -998,7 +1007,7 @@ class ReducedModel:
             if gm is not None:
                 rigid3[:, 1:] = self.dt * np.einsum("lij,lj->li", tangents, rigid_v)
                 g3[:, 1:] += rigid3[:, 1:]
-            fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel())
+            fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
         return verts, C, phi_eff, normals, which, fric
 
     def _rows_along(self, dirs, verts, xv, starts):
@@ -1010,6 +1019,15 @@ class ReducedModel:
         L = self.layout
         k, r = dirs.shape[:2]
         vrow = L.vertex_row[verts]
+        m = len(starts)
+        if not self.F:
+            # Every vertex is in a subspace domain: one compiled pass (reconstruct.py).
+            row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
+            out = np.zeros((m * r, self.n_gen))
+            reconstruct.contact_rows_kernel(np.ascontiguousarray(dirs), vrow, L.U, L.row_domain, self.frames.R,
+                                            self.frames.c, np.ascontiguousarray(xv), L.q_index, L.mask,
+                                            self._frame_cols, row_of, self.dt, out)
+            return out
         blocks = []                                          # (corner rows, direction, columns, values)
         sel = np.flatnonzero(vrow >= 0)
         if sel.size:
@@ -1044,22 +1062,13 @@ class ReducedModel:
                            np.broadcast_to(np.arange(r)[None, :, None], shape).ravel(),
                            np.broadcast_to((self.S + 3 * dofs[okf, None] + np.arange(3))[:, None, :], shape).ravel(),
                            dirs[f_rows].ravel()))
-        m = len(starts)
-        if self.F:
-            # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
-            # (duplicates, a face's corners, are summed on construction).
-            row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
-            r_idx = row_of[np.concatenate([b[0] for b in blocks])] * r + np.concatenate([b[1] for b in blocks])
-            c_idx = np.concatenate([b[2] for b in blocks])
-            values = np.concatenate([b[3] for b in blocks])
-            return sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(m * r, self.n_gen))
-        Cv = np.zeros((k, r, self.n_gen))                   # one row per (corner, direction)
-        for c_rows, c_dir, c_cols, vals in blocks:          # at most three blocks (kinds of rows)
-            Cv[c_rows, c_dir, c_cols] = vals
-        C = Cv if m == k else np.add.reduceat(Cv, starts, axis=0)
-        C = C.reshape(m * r, self.n_gen)
-        C *= self.dt
-        return C
+        # A full-space domain makes n_gen large and its rows 3-sparse: C as CSR
+        # (duplicates, a face's corners, are summed on construction).
+        row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
+        r_idx = row_of[np.concatenate([b[0] for b in blocks])] * r + np.concatenate([b[1] for b in blocks])
+        c_idx = np.concatenate([b[2] for b in blocks])
+        values = np.concatenate([b[3] for b in blocks])
+        return sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(m * r, self.n_gen))
 
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py),
@@ -1086,9 +1095,9 @@ class ReducedModel:
             active = lam > 0
         else:
             C3, g3, mu = friction[:3]
-            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu,
-                                                    regularize=1e-9, hint=hint,
-                                                    lam_guess=self._contact_lam if same_step else None)
+            guess = self._contact_lam if same_step else friction[5]
+            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu, regularize=1e-9,
+                                                    hint=hint if guess is None else None, lam_guess=guess)
             active = lam[:, 0] > 0
         self._contact_info = info
         self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[active]]
