@@ -288,6 +288,7 @@ class MdssNode(Node):
             if not self.has_parameter(name):
                 self._declare(name)
         self._check_startup_parameters()
+        self._scene_colliders = list(scene["colliders"])
         self._warn_unknown_parameters()
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -313,6 +314,7 @@ class MdssNode(Node):
 
         self.handles = set(scene["handles"])
         self.colliders = list(scene["colliders"])
+        self._declare_friction_parameters()
         self.domain_names = self._domain_names()
         self.surface_domain = np.asarray(self.sim.model.vertex_domain)[self.surface_ids]
         self._points = convert.SurfacePoints(self.surface_domain)
@@ -413,23 +415,79 @@ class MdssNode(Node):
             if reason:
                 raise StartupError(f"parameter {reason}")
 
+    @staticmethod
+    def _friction_parameter(name):
+        """(collider, 'static' or 'kinetic') of a parameter colliders.<name>.friction_<part>,
+        else None."""
+        if not name.startswith("colliders."):
+            return None
+        collider, _, leaf = name[len("colliders."):].rpartition(".")
+        part = leaf[len("friction_"):] if leaf.startswith("friction_") else ""
+        return (collider, part) if collider and part in ("static", "kinetic") else None
+
+    def _declare_friction_parameters(self):
+        """colliders.<name>.friction_static and .friction_kinetic per collider: the Coulomb
+        coefficients (scene key colliders.<name>.friction), changeable at runtime; a value
+        given at launch (-p) replaces the scene's."""
+        for c in self.colliders:
+            mu_s, mu_k = self.sim.colliders[c].friction
+            for part, value in (("static", mu_s), ("kinetic", mu_k)):
+                desc = ParameterDescriptor(description=f"Coulomb {part} friction coefficient of collider {c!r} "
+                                                       f"(0: frictionless; kinetic <= static)",
+                                           dynamic_typing=True)
+                self.declare_parameter(f"colliders.{c}.friction_{part}", float(value), desc)
+            try:
+                self.sim.set_collider_friction(c, self._number(f"colliders.{c}.friction_static"),
+                                               self._number(f"colliders.{c}.friction_kinetic"))
+            except ValueError as err:
+                raise StartupError(f"parameters colliders.{c}.friction_*: {err}") from err
+
+    def _number(self, name):
+        value = self.get_parameter(name).value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{name}: expected a number, got {value!r}")
+        return float(value)
+
     def _warn_unknown_parameters(self):
-        known = set(PARAMETERS) | {"use_sim_time", "start_type_description_service"}
+        known = set(PARAMETERS) | {"use_sim_time", "start_type_description_service"} | {
+            f"colliders.{c}.friction_{part}" for c in self._scene_colliders for part in ("static", "kinetic")}
         for name in getattr(self, "_parameter_overrides", {}):
             if name not in known and not name.startswith("qos_overrides."):
                 self.get_logger().warn(f"unknown parameter {name!r} ignored "
                                        f"(parameters: {', '.join(sorted(PARAMETERS))})")
 
     def _validate_parameters(self, params):
+        friction = {}
         for p in params:
             if p.name in PARAMETERS:
                 reason = self._check(p.name, p.value)
                 if reason:
                     return SetParametersResult(successful=False, reason=reason)
+            elif self._friction_parameter(p.name) and hasattr(self, "sim"):
+                collider, part = self._friction_parameter(p.name)
+                if collider not in friction:       # the pair as it stands: declared values, else the scene's
+                    friction[collider] = {
+                        k: (self.get_parameter(f"colliders.{collider}.friction_{k}").value
+                            if self.has_parameter(f"colliders.{collider}.friction_{k}") else v)
+                        for k, v in zip(("static", "kinetic"), self.sim.colliders[collider].friction)}
+                    if not self.has_parameter(f"colliders.{collider}.friction_kinetic"):
+                        friction[collider].pop("kinetic")       # being declared: static alone so far
+                friction[collider][part] = p.value
+        from .contact.friction import parse_friction
+        for collider, value in friction.items():
+            try:
+                parse_friction(f"colliders.{collider}", value)
+            except ValueError as err:
+                return SetParametersResult(successful=False, reason=str(err))
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, params):
         names = {p.name for p in params}
+        for collider in {self._friction_parameter(n)[0] for n in names if self._friction_parameter(n)}:
+            # While they are declared one by one, the pair is applied once both exist.
+            if hasattr(self, "sim") and self.has_parameter(f"colliders.{collider}.friction_kinetic"):
+                self.sim.set_collider_friction(collider, self._number(f"colliders.{collider}.friction_static"),
+                                               self._number(f"colliders.{collider}.friction_kinetic"))
         if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
                     "max_point_forces"}:
             self._limits = self._read_limits()

@@ -151,6 +151,17 @@ class Simulator:
         self._wrenches.clear()
         self._point_forces.clear()
 
+    def set_collider_friction(self, name, static, kinetic=None):
+        """Set a collider's Coulomb coefficients from the next step on: static mu_s and
+        kinetic mu_k (default mu_s); 0 is frictionless. ValueError for a negative or
+        non-finite value or mu_k > mu_s; KeyError for an unknown collider. A reset keeps
+        the scene's values."""
+        if name not in self._collider_names:
+            raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
+        from .contact.friction import parse_friction
+        value = {"static": static} if kinetic is None else {"static": static, "kinetic": kinetic}
+        self.colliders[name].friction = parse_friction(f"colliders.{name}", value)
+
     def set_collider_pose(self, name, position, orientation=(0.0, 0.0, 0.0, 1.0)):
         """Pose a kinematic collider (world frame; orientation x y z w, normalised here).
 

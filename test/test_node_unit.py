@@ -164,3 +164,41 @@ def test_parse_overrides_and_ros_args():
         parse_overrides(["model.modes"])
     assert _ros_args(["mdss_node", "-p", "scene:=x"]) == ["mdss_node", "--ros-args", "-p", "scene:=x"]
     assert _ros_args(["mdss_node", "--ros-args", "-p", "a:=1"]) == ["mdss_node", "--ros-args", "-p", "a:=1"]
+
+
+def test_collider_friction_is_a_node_parameter(tmp_path):
+    import yaml
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.parameter import Parameter
+    from mdss_ros.node import MdssNode
+
+    scene = {"name": "pad", "body": {"mesh": {"generator": "box", "size": [0.1, 0.1, 0.04], "cell": 0.05},
+                                     "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000}},
+             "colliders": {"floor": {"shape": "plane", "friction": 0.3}},
+             "model": {"kind": "full"}}
+    path = tmp_path / "pad.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    lease = DomainLease()
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        n = MdssNode(context=ctx, parameter_overrides=[
+            Parameter("scene", value=str(path)), Parameter("start_paused", value=True),
+            Parameter("colliders.floor.friction_static", value=0.8),
+            Parameter("colliders.floor.friction_kinetic", value=0.6)])
+        assert n.sim.colliders["floor"].friction == (0.8, 0.6)          # launch values replace the scene's
+        bad = n.set_parameters([Parameter("colliders.floor.friction_kinetic", value=0.9)])
+        assert not bad[0].successful and "must not exceed static" in bad[0].reason
+        assert n.sim.colliders["floor"].friction == (0.8, 0.6)
+        assert not n.set_parameters([Parameter("colliders.floor.friction_static", value=-1.0)])[0].successful
+        ok = n.set_parameters_atomically([Parameter("colliders.floor.friction_static", value=0.2),
+                                          Parameter("colliders.floor.friction_kinetic", value=0.1)])
+        assert ok.successful
+        assert n.sim.colliders["floor"].friction == (0.2, 0.1)
+        n.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        lease.release()
