@@ -12,16 +12,23 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _key(r):
-    return (r["kind"], r["material"], r["young"], r["poisson"], round(r["dt"], 12), r["spin"], r["force"])
+    return (r["kind"], r["material"], r["young"], r["poisson"], round(r["dt"], 12), r["spin"], r["force"],
+            r.get("mu"), r.get("speed"))
 
 
 def check_report(report):
     """The checks on a stability.json (also usable on a full run's JSON)."""
     rows = report["rows"]
     assert len(rows) == report["design"]["cells"] * 6
-    # every value of every parameter appears
+    # every value of every parameter appears (the contact cells have their own axes)
+    matrix = [r for r in rows if "mu" not in r]
     for name in ("young", "poisson", "dt", "spin", "force"):
-        assert {r[name] for r in rows} == set(report["design"][name])
+        assert {r[name] for r in matrix} == set(report["design"][name])
+    contact = [r for r in rows if "mu" in r]
+    assert len(contact) == report["design"]["contact"]["cells"] * 6
+    if not report["design"]["quick"]:
+        for name in ("mu", "speed", "young"):
+            assert {r[name] for r in contact} == set(report["design"]["contact"][name])
     # The target of issue 7: no failed cell. (The last 5, a 1 kPa body under the 1 kN load,
     # were fixed by the compression barrier, fem/materials.py, and the guard's untangle.)
     failed = [r for r in rows if r["status"] == "failed"]

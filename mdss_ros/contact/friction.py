@@ -355,6 +355,22 @@ def _newton(W, g, mu, lam0, tol, max_iterations):
                  "unconverged": bool(np.sqrt(merit) > UNCONVERGED * scale)}
 
 
+def _positive(W, shift):
+    """W + shift I, made positive definite if it is not: an indefinite step matrix A (a
+    reduced model's implicit fictitious forces at a large step, solved by LU) gives an
+    indefinite W = C A^-1 C^T, where the contact problem has no bounded answer (forces
+    of 1e9 N were seen). Its eigenvalues are then lifted to at least the shift, so the
+    contact stays finite and the guard judges the step (it retries such steps with
+    sub-steps, where A is positive again)."""
+    Ws = W + shift * np.eye(len(W))
+    try:
+        np.linalg.cholesky(Ws)
+        return Ws
+    except np.linalg.LinAlgError:
+        low = float(np.linalg.eigvalsh(Ws)[0])
+        return Ws + (max(shift, 1e-9 * float(np.mean(np.abs(np.diag(W))))) - low) * np.eye(len(W))
+
+
 def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_rounds=50, hint=None,
                           lam_guess=None):
     """Multipliers and velocity correction of one linear solve with frictional contact.
@@ -404,7 +420,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     guess = None if lam_guess is None else lam_guess[work]
     info = {}
     for rounds in range(1, max_rounds + 1):
-        lam_w, info = solve_coulomb(Wd + shift * np.eye(len(r)), g[r], mu[work], lam0=guess, tol=tol)
+        lam_w, info = solve_coulomb(_positive(Wd, shift), g[r], mu[work], lam0=guess, tol=tol)
         corr = Y @ lam_w.ravel()
         gap = C[0::3] @ corr + gn
         out = np.ones(m, dtype=bool)

@@ -48,6 +48,15 @@ Classification of a cell:
              and the run ended finite, uninverted, energy bounded;
   stable     no guard action and the checks above pass.
 Each recovered cell lists what the guard did (per-step actions, counted).
+
+Contact cells (issue 18): the same box, free, on a floor plane, with a sphere (radius 3 cm)
+that comes down 1 cm into the middle of its top and drags across it along x, crossing the
+middle at half time; floor and sphere share the friction coefficient.
+  mu       {0, 0.5, 2}           speed  {0.1, 5} m/s          young  {1e4, 1e7} Pa
+(12 cells; --quick: 2), poisson 0.3, dt 1/90, each for both model kinds and the three
+materials, classified as above (the collider's work on the body counts as work of loads).
+At 5 m/s the sphere moves 5.6 cm a step, beyond the contact margin: the Simulator sweeps it
+in sub-steps (simulator.py).
 """
 import itertools
 import json
@@ -76,8 +85,21 @@ SPIN_AXIS = np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0])
 CELL = 0.03                     # m, mesh cell of the box generator
 
 
+CONTACT_MU = [0.0, 0.5, 2.0]
+CONTACT_SPEED = [0.1, 5.0]
+CONTACT_YOUNG = [1e4, 1e7]
+SPHERE_RADIUS, PRESS = 0.03, 0.01
+
+
 def _key(c):
-    return tuple(c[k] for k in ("young", "poisson", "dt", "spin", "force"))
+    return tuple(c.get(k) for k in ("young", "poisson", "dt", "spin", "force", "mu", "speed"))
+
+
+def contact_design(quick=False):
+    """The contact cells (dicts with mu and speed), in a documented order."""
+    if quick:
+        return [dict(BASE, young=1e7, mu=0.5, speed=0.1), dict(BASE, young=1e4, mu=2.0, speed=5.0)]
+    return [dict(BASE, young=e, mu=mu, speed=v) for e in CONTACT_YOUNG for mu in CONTACT_MU for v in CONTACT_SPEED]
 
 
 def corners():
@@ -133,6 +155,26 @@ def cell_scene(kind, material, young, poisson, dt, spin, force=1.0):
     }
 
 
+def contact_scene(kind, material, young, mu):
+    """The scene dict of a contact cell: the box free on a floor, a sphere above its top."""
+    scene = cell_scene(kind, material, young, BASE["poisson"], BASE["dt"], 0.0)
+    scene["pins"], scene["handles"], scene["initial_velocity"] = [], {}, {}
+    scene["colliders"] = {"floor": {"shape": "plane", "friction": float(mu)},
+                          "ball": {"shape": "sphere", "radius": SPHERE_RADIUS, "friction": float(mu),
+                                   "position": [-1.0, 0.05, 0.1 + SPHERE_RADIUS + 0.005]}}
+    return scene
+
+
+def ball_pose(cell, k, steps):
+    """The sphere's position before step k: along x at the cell's speed, crossing the top's
+    middle (x = 0.1) at half time, lowered from 5 mm above the top to PRESS into it over the
+    first four steps."""
+    dt = cell["dt"]
+    x = 0.1 + cell["speed"] * dt * (k - steps / 2)
+    z = 0.1 + SPHERE_RADIUS + 0.005 - min(1.0, k / 4) * (0.005 + PRESS)
+    return (x, 0.05, z)
+
+
 def transit_time(young, poisson):
     """Time (s) a shear wave takes along the body, L / sqrt(mu / rho)."""
     mu = young / (2.0 * (1.0 + poisson))
@@ -153,10 +195,16 @@ def run_cell(kind, material, cell, steps, cache=None):
     from ..precompute import PrecomputeCache
     from ..simulator import Simulator
     t0 = time.perf_counter()
-    sim = Simulator(cell_scene(kind, material, cell["young"], cell["poisson"], cell["dt"], cell["spin"]),
-                    cache=cache if cache is not None else PrecomputeCache(enabled=False))
+    contact = "mu" in cell
+    scene = (contact_scene(kind, material, cell["young"], cell["mu"]) if contact else
+             cell_scene(kind, material, cell["young"], cell["poisson"], cell["dt"], cell["spin"]))
+    sim = Simulator(scene, cache=cache if cache is not None else PrecomputeCache(enabled=False))
     build = time.perf_counter() - t0
-    sim.set_wrench("tip", force=(0.0, 0.0, -TIP_FORCE * cell["force"]))
+    if contact:
+        # The sphere is posed before each step; the body settles on the floor meanwhile.
+        sim.set_collider_pose("ball", ball_pose(cell, 0, steps))
+    else:
+        sim.set_wrench("tip", force=(0.0, 0.0, -TIP_FORCE * cell["force"]))
     e0 = sim.energy()
     E0, W = e0["total"], 0.0
     created, scale = 0.0, e0["kinetic"] + max(e0["elastic"], 0.0)
@@ -165,7 +213,9 @@ def run_cell(kind, material, cell, steps, cache=None):
     tets = sim.tetrahedra()
     inverted_release, k, limit = None, 0, steps + extra_steps(cell, steps)
     while k < limit:
-        if k == steps // 2:
+        if contact:
+            sim.set_collider_pose("ball", ball_pose(cell, k + 1, steps))
+        elif k == steps // 2:
             sim.set_wrench("tip", force=(0.0, 0.0, 0.0))
             xr = sim.vertex_positions()
             inverted_release = inverted_tets(xr, tets) if np.isfinite(xr).all() else -1
@@ -211,6 +261,8 @@ def run_cell(kind, material, cell, steps, cache=None):
 
 
 def cell_label(c):
+    if "mu" in c:
+        return f"contact E={c['young']:.0e} mu={c['mu']:g} v={c['speed']:g} m/s"
     dt = {1e-4: "1e-4", 1.0 / 90.0: "1/90", 1.0 / 30.0: "1/30"}.get(c["dt"], f"{c['dt']:g}")
     return f"E={c['young']:.0e} nu={c['poisson']:g} dt={dt} w={c['spin']:g} f={c['force']:g}"
 
@@ -285,7 +337,7 @@ def run_study(out, quick=False, kinds=None, materials=None, log=print):
     """Run the matrix, write stability.json and stability_<kind>.png into out; returns the report."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cells = design(quick)
+    cells = design(quick) + contact_design(quick)
     kinds = kinds or KINDS
     materials = materials or MATERIALS
     steps = QUICK_STEPS if quick else STEPS
@@ -310,7 +362,9 @@ def run_study(out, quick=False, kinds=None, materials=None, log=print):
     plots = [heatmap(rows, k, cells, out / f"stability_{k}.png") for k in kinds]
     report = {"design": {"young": YOUNG, "poisson": POISSON, "dt": DTS, "spin": SPINS, "force": FORCES,
                          "base": BASE, "quick": quick, "steps": steps, "tip_force_N": TIP_FORCE,
-                         "energy_bound": ENERGY_BOUND, "cells": len(cells)},
+                         "energy_bound": ENERGY_BOUND, "cells": len(cells),
+                         "contact": {"mu": CONTACT_MU, "speed": CONTACT_SPEED, "young": CONTACT_YOUNG,
+                                     "cells": len(contact_design(quick))}},
               "counts": counts, "rows": rows, "plots": plots, "seconds": time.perf_counter() - t0}
     (out / "stability.json").write_text(json.dumps(report, indent=1, default=_json))
     log(table)
