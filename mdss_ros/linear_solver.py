@@ -56,7 +56,11 @@ class SparseSolver:
             try:
                 self._solver.factorize(upper)
             except pypardiso.pardiso_wrapper.PyPardisoError as err:
-                self._solver = None
+                # Keep the solver: a new PyPardisoSolver searches sys.prefix for mkl_rt
+                # (300 ms here, every step of a compressed body whose first factorisation
+                # fails), and the dropped one's MKL memory was never released: a leak of
+                # one factorisation a step. Release MKL's memory and reuse the object.
+                self._solver.free_memory(everything=True)
                 raise NotPositiveDefinite(str(err)) from err
             self._upper = upper
         elif self.backend == "cholmod":

@@ -46,6 +46,7 @@ FAST = {
                  "model.modes": 4, "model.cubature": _cubature()}, 50),
     "soft_finger": ({"body.mesh.cell": 0.005, "model.modes": 6, "model.cubature": _cubature()}, 55),
     "star_limbs": ({"body.mesh.cell": 0.03, "model.modes": 4, "model.cubature": _cubature()}, 60),
+    "grasp_lift": ({}, 80),             # full model, 384 tets: the pads have closed and begun the lift
 }
 
 
