@@ -76,7 +76,7 @@ def scene(kind="full", mu=1.0, squeeze=0.003, young=5e4, cell=0.01, timeline_rat
             "duration": round(duration(), 6)}
     if timeline_rate:
         events = []
-        for t in np.arange(1.0 / timeline_rate, duration() + 1e-9, 1.0 / timeline_rate):
+        for t in np.arange(1.0 / timeline_rate, duration() - 0.5 / timeline_rate, 1.0 / timeline_rate):
             for name, p in zip(("left", "right"), pad_positions(t, squeeze)):
                 events.append({"t": round(float(t), 4), "topic": "collider_pose", "name": name,
                                "position": [round(float(v), 6) for v in p]})
