@@ -319,3 +319,56 @@ def test_bad_start_exits_2_with_a_clear_message_and_sigint_while_building_exits_
     assert "points_publish_rate must be >= 0" in bad_rate.text
     assert "expected KEY=VALUE" in bad_set.text
     assert "interrupted while starting" in building.text, building.text
+
+
+def test_grasp_driven_by_pose_messages_from_another_process(tmp_path):
+    """grasp_lift in the node: another process sends the pads' poses (stamped with the
+    scene timeline's times, sent before the run starts); the grip force read back from
+    ~/colliders/<pad>/wrench equals an in-process Simulator fed the same timeline, and
+    the cube is lifted 10 cm (issue 18)."""
+    scene = load_scene("grasp_lift")
+    events = scene["timeline"]
+    with Launch(tmp_path) as launch:
+        node = _start_node(launch, scene="grasp_lift", scene_overrides="", start_paused=True,
+                           real_time_factor=0.0, pose_publish_rate=30.0)
+        probe = launch.probe()
+        for pad in ("left", "right"):
+            probe.sub(f"/mdss/colliders/{pad}/wrench", "geometry_msgs/msg/WrenchStamped")
+        probe.sub(POINTS, CLOUD)
+        # In chunks of 20, each taken in by the node before the next: the pose subscriptions
+        # keep the last 50 messages, and a burst of 71 lost some (issue 20).
+        sent = 0
+        for start in range(0, len(events), 20):
+            for pad in ("left", "right"):
+                msgs = []
+                for ev in (e for e in events[start:start + 20] if e["name"] == pad):
+                    sec = int(ev["t"])
+                    x, y, z = ev["position"]
+                    msgs.append({"header": {"frame_id": "world",
+                                            "stamp": {"sec": sec, "nanosec": int(round((ev["t"] - sec) * 1e9))}},
+                                 "pose": {"position": {"x": x, "y": y, "z": z}, "orientation": {"w": 1.0}}})
+                probe.pub(f"/mdss/colliders/{pad}/pose", "geometry_msgs/msg/PoseStamped", msgs)
+                sent += len(msgs)
+            probe.diagnostics(where={"inputs_received": {"ge": sent}}, timeout=30)
+        received = int(probe.diagnostics()["inputs_received"])
+        probe.call("/mdss/unpause_physics", EMPTY)
+        end = scene["duration"] - 0.1
+        wrenches = probe.wait("/mdss/colliders/right/wrench", where={"stamp_ge": end}, timeout=120)
+        clouds = probe.wait(POINTS, where={"stamp_ge": end}, timeout=30)
+        assert node.stop() == 0
+    assert received == len(events), (received, len(events))         # every pose arrived before the run
+    w = wrenches[-1]
+    t_w = _t(w["header"]["stamp"])
+    sim = Simulator(scene)
+    player = TimelinePlayer(events)
+    while sim.time < t_w - 1e-9:
+        player.apply_due(sim)
+        sim.step()
+    ref = sim.collider_wrench("right")
+    got = [w["wrench"]["force"][k] for k in "xyz"]
+    np.testing.assert_allclose(got, ref[:3], rtol=1e-6, atol=1e-9)
+    assert got[0] > 5.0                                          # the pad is pushed out by a grip of ~11 N
+    rest_z = sim.rest_positions()[:, 2].mean()
+    lifted = _xyz(clouds[-1])[:, 2].mean() - sim.rest_positions()[sim.surface_vertex_ids()][:, 2].mean()
+    assert lifted > 0.095, lifted                                # held through the 10 cm lift
+    assert rest_z > 0.0
