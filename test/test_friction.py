@@ -8,9 +8,10 @@ from mdss_ros.contact.friction import (UNCONVERGED, collider_displacement, effec
                                        solve_coulomb, tangent_basis)
 from mdss_ros.contact.colliders import make_collider
 from mdss_ros.errors import SceneError
+from mdss_ros.verify import friction_study as fs
 
-G = 9.81
-DT = 1 / 90
+G = fs.G
+DT = fs.DT
 
 
 def _coulomb_violation(W, g, mu, lam):
@@ -123,37 +124,11 @@ def test_bad_friction_is_a_scene_error_naming_the_key(value, match):
 
 
 # ------------------------------------------------------------------- closed forms
-REDUCED = {"kind": "reduced", "domains": {"count": 1}, "modes": 12}
 REDUCED_FULL_DOMAIN = {"kind": "reduced", "domains": {"count": 2}, "modes": 10, "full_space_domains": ["domain_1"],
                        "cubature": {"samples": 0}}
-MODELS = {"full": {"kind": "full"}, "reduced": REDUCED, "reduced+full_domain": REDUCED_FULL_DOMAIN}
-
-
-def _incline(theta_deg, model, friction=0.5):
-    """The issue's incline: a 0.10 x 0.08 x 0.04 m block, E 2e5 Pa, on a floor with gravity
-    tilted by theta about y (so it slides along +x)."""
-    th = np.radians(theta_deg)
-    return {"name": "incline",
-            "body": {"mesh": {"generator": "box", "size": [0.10, 0.08, 0.04], "cell": 0.02,
-                              "origin": [-0.05, -0.04, 0.0]},
-                     "material": {"model": "neohookean", "young": 2e5, "poisson": 0.3, "density": 1000}},
-            "colliders": {"floor": {"shape": "plane", "friction": friction}},
-            "gravity": [G * np.sin(th), 0.0, -G * np.cos(th)],
-            "model": {"integrator": {"dt": DT, "newton_iterations": 1}, **model}}
-
-
-def _run(sim, steps):
-    """Mean displacement along x (steps,), lowest vertex height (steps,), total energy
-    (steps,) with the tilted gravity's potential."""
-    x0 = sim.vertex_positions().copy()
-    mean_x, low, energy = [], [], []
-    for _ in range(steps):
-        sim.step()
-        x = sim.vertex_positions()
-        mean_x.append((x[:, 0] - x0[:, 0]).mean())
-        low.append(x[:, 2].min())
-        energy.append(sim.energy()["total"])
-    return np.array(mean_x), np.array(low), np.array(energy)
+MODELS = dict(fs.MODELS, **{"reduced+full_domain": REDUCED_FULL_DOMAIN})
+REDUCED = fs.REDUCED
+_incline, _run, _pressed_block = fs.incline, fs.run_incline, fs.pressed_block
 
 
 @pytest.mark.claims
@@ -228,33 +203,11 @@ def test_kinetic_friction_below_static(model):
     np.testing.assert_allclose(a, G * (np.sin(th) - 0.5 * np.cos(th)), rtol=0.01)
 
 
-def _pressed_block(model, mu=0.5):
-    """A block bonded at the bottom, pressed 2 mm by a pad wider than its top."""
-    return {"name": "drag",
-            "body": {"mesh": {"generator": "box", "size": [0.10, 0.10, 0.04], "cell": 0.02,
-                              "origin": [-0.05, -0.05, 0.0]},
-                     "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000},
-                     "damping": {"alpha": 2.0, "beta": 0.0}},
-            "pins": [{"box": [[-1, -1, -1e-4], [1, 1, 1e-4]]}],
-            "colliders": {"pad": {"shape": "box", "half_extents": [0.08, 0.08, 0.01], "position": [0, 0, 0.05],
-                                  "friction": mu}},
-            "gravity": [0, 0, 0],
-            "model": {"integrator": {"dt": DT, "newton_iterations": 1}, **model}}
-
-
 @pytest.mark.claims
 @pytest.mark.parametrize("model", ["full", "reduced"])
 def test_dragged_pad_reads_mu_times_the_normal_force(model):
     sim = Simulator(_pressed_block(MODELS[model] if model == "full" else dict(REDUCED, modes=30)))
-    for k in range(20):                                       # press 2 mm
-        sim.set_collider_pose("pad", (0.0, 0.0, 0.05 - 0.002 * (k + 1) / 20))
-        sim.step()
-    ratios = []
-    for k in range(60):                                       # drag 2 cm along x at 0.3 m/s
-        sim.set_collider_pose("pad", (0.02 * (k + 1) / 60, 0.0, 0.048))
-        sim.step()
-        w = sim.collider_wrench("pad")
-        ratios.append(-w[0] / w[2])
+    ratios = fs.drag(sim)                                     # press 2 mm, drag 2 cm along x at 0.3 m/s
     # Once the whole top slides, the pad's tangential reaction is mu N (within 2 %), and
     # it resists the motion (on the pad: -x while it moves +x).
     assert abs(ratios[-1] - 0.5) < 0.02 * 0.5
