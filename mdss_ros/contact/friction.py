@@ -184,14 +184,21 @@ def project_cone(lam, mu):
 
 
 def _rho(W, m):
+    """rho (m,) = 1 / W_nn per contact: rho W is of order one in the Alart-Curnier function."""
     diag = np.diag(W).reshape(m, 3)[:, 0]
     return 1.0 / np.maximum(diag, 1e-300 + 1e-12 * float(diag.max(initial=0.0)))
+
+
+def _force_scale(g, rho, lam):
+    """Scale of the forces the residual is measured against: those of lam (m, 3), or
+    the force the free step's overlap calls for, rho (-g_n)."""
+    return max(float(np.abs(lam).max(initial=0.0)), float(np.max(-g[0::3] * rho, initial=0.0)), 1e-300)
 
 
 def _info(W, g, mu, rho, lam):
     """What _newton reports, for an answer found another way."""
     F, parts = _residual(W, g, mu, rho, lam)
-    scale = max(float(np.abs(lam).max(initial=0.0)), float(np.max(-g[0::3] * rho, initial=0.0)), 1e-300)
+    scale = _force_scale(g, rho, lam)
     residual = float(np.sqrt((F * F).sum())) / scale
     in_contact = lam[:, 0] > 0.0
     return {"iterations": 0, "line_search_cuts": 0, "residual": residual, "stick": in_contact & parts[2],
@@ -309,12 +316,10 @@ def _newton(W, g, mu, lam0, tol, max_iterations):
     (non-monotone: a kink of F can make every short step look worse), and the best
     iterate is kept. It ends when |F| is below tol x the scale of the forces."""
     m = len(mu)
-    diag = np.diag(W).reshape(m, 3)[:, 0]
-    rho = 1.0 / np.maximum(diag, 1e-300 + 1e-12 * float(diag.max(initial=0.0)))
+    rho = _rho(W, m)
     lam = np.array(lam0, dtype=np.float64).reshape(m, 3)
     F, parts = _residual(W, g, mu, rho, lam)
-    # Scale of the forces: those of the first guess, or the free step's overlap.
-    scale = max(float(np.abs(lam).max(initial=0.0)), float(np.max(-g[0::3] * rho, initial=0.0)), 1e-300)
+    scale = _force_scale(g, rho, lam)
     merit = float((F * F).sum())
     best = (merit, lam, parts)
     it, cuts, stalled = 0, 0, 0
