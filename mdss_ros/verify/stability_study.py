@@ -51,7 +51,8 @@ Each recovered cell lists what the guard did (per-step actions, counted).
 
 Contact cells (issue 18): the same box, free, on a floor plane, with a sphere (radius 3 cm)
 that comes down 1 cm into the middle of its top and drags across it along x, crossing the
-middle at half time; floor and sphere share the friction coefficient.
+middle at half time, and is lifted clear at three quarters of the steps (the release);
+floor and sphere share the friction coefficient.
   mu       {0, 0.5, 2}           speed  {0.1, 5} m/s          young  {1e4, 1e7} Pa
 (12 cells; --quick: 2), poisson 0.3, dt 1/90, each for both model kinds and the three
 materials, classified as above (the collider's work on the body counts as work of loads).
@@ -168,10 +169,13 @@ def contact_scene(kind, material, young, mu):
 def ball_pose(cell, k, steps):
     """The sphere's position before step k: along x at the cell's speed, crossing the top's
     middle (x = 0.1) at half time, lowered from 5 mm above the top to PRESS into it over the
-    first four steps."""
+    first four steps, and lifted 5 cm clear over four steps from three quarters of the
+    steps on. Like the other cells' load, the press is then released, and the cell is
+    judged on how the model recovers (an inverted element left is a failure)."""
     dt = cell["dt"]
     x = 0.1 + cell["speed"] * dt * (k - steps / 2)
     z = 0.1 + SPHERE_RADIUS + 0.005 - min(1.0, k / 4) * (0.005 + PRESS)
+    z += min(1.0, max(0.0, k - 3 * steps // 4) / 4) * (PRESS + 0.05)
     return (x, 0.05, z)
 
 
