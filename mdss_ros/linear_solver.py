@@ -44,6 +44,22 @@ class SparseSolver:
         self._solver = None
         self.n = 0
 
+    def close(self):
+        """Release the factorisation's native memory. PARDISO keeps it inside MKL, not in
+        Python objects, and pypardiso has no __del__: a PyPardisoSolver dropped without
+        free_memory keeps one factorisation until the process exits (measured: about
+        80 MB for each Simulator of 8.7K DOFs built and dropped). The solver factors
+        again after this."""
+        solver, self._solver = getattr(self, "_solver", None), None
+        if solver is not None and getattr(self, "backend", None) == "pardiso":
+            try:
+                solver.free_memory(everything=True)
+            except Exception:           # interpreter shutdown: ctypes or the library may be gone
+                pass
+
+    def __del__(self):
+        self.close()
+
     def factor(self, A):
         """Factor A, a (n, n) symmetric sparse matrix (CSR or anything scipy converts)."""
         A = sp.csr_matrix(A)
