@@ -437,10 +437,19 @@ class MdssNode(Node):
                                            dynamic_typing=True)
                 self.declare_parameter(f"colliders.{c}.friction_{part}", float(value), desc)
             try:
-                self.sim.set_collider_friction(c, self._number(f"colliders.{c}.friction_static"),
-                                               self._number(f"colliders.{c}.friction_kinetic"))
+                self._set_friction(c)
             except ValueError as err:
                 raise StartupError(f"parameters colliders.{c}.friction_*: {err}") from err
+
+    def _set_friction(self, collider):
+        """Apply the collider's friction parameters to the simulator, and to its scene, so a
+        reset keeps them and a recording started after this replays them. (A change at
+        runtime is not an input of the recording: `mdss replay --check` reports the
+        outputs after it as different.)"""
+        mu_s = self._number(f"colliders.{collider}.friction_static")
+        mu_k = self._number(f"colliders.{collider}.friction_kinetic")
+        self.sim.set_collider_friction(collider, mu_s, mu_k)
+        self.sim.scene.data["colliders"][collider]["friction"] = {"static": mu_s, "kinetic": mu_k}
 
     def _number(self, name):
         value = self.get_parameter(name).value
@@ -486,8 +495,7 @@ class MdssNode(Node):
         for collider in {self._friction_parameter(n)[0] for n in names if self._friction_parameter(n)}:
             # While they are declared one by one, the pair is applied once both exist.
             if hasattr(self, "sim") and self.has_parameter(f"colliders.{collider}.friction_kinetic"):
-                self.sim.set_collider_friction(collider, self._number(f"colliders.{collider}.friction_static"),
-                                               self._number(f"colliders.{collider}.friction_kinetic"))
+                self._set_friction(collider)
         if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
                     "max_point_forces"}:
             self._limits = self._read_limits()

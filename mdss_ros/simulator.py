@@ -154,8 +154,9 @@ class Simulator:
     def set_collider_friction(self, name, static, kinetic=None):
         """Set a collider's Coulomb coefficients from the next step on: static mu_s and
         kinetic mu_k (default mu_s); 0 is frictionless. ValueError for a negative or
-        non-finite value or mu_k > mu_s; KeyError for an unknown collider. A reset keeps
-        the scene's values."""
+        non-finite value or mu_k > mu_s; KeyError for an unknown collider. A reset restores
+        the scene's values (the node writes its friction parameters into the scene, so its
+        reset keeps them)."""
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
         from .contact.friction import parse_friction

@@ -198,6 +198,8 @@ def test_collider_friction_is_a_node_parameter(tmp_path):
                                           Parameter("colliders.floor.friction_kinetic", value=0.1)])
         assert ok.successful
         assert n.sim.colliders["floor"].friction == (0.2, 0.1)
+        n._srv_reset(None, None)                                        # a reset keeps the parameters' values
+        assert n.sim.colliders["floor"].friction == (0.2, 0.1)
         n.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
