@@ -956,13 +956,13 @@ class ReducedModel:
                 key = np.concatenate([key, n_all * n_col + t_idx * n_col + t_which])
         if len(rows) == 0:
             return None
-        friction = coefficients(contact, which)         # None: frictionless, one row per contact
+        rough = coefficients(contact, which) is not None    # else frictionless: one row per contact
         verts = ids[rows]
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         tangents = None
-        if friction is None:
+        if not rough:
             C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts)
         else:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
@@ -995,7 +995,7 @@ class ReducedModel:
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
         fric = None
-        if friction is not None:
+        if rough:
             n_col = len(contact["colliders"])
             keys = verts * n_col + which
             mu = effective_mu(*coefficients(contact, which), keys, self.contact, n_col)
