@@ -152,6 +152,9 @@ SCHEMA = {
             "volume_stiffness": (_nonneg, 0.1),
             "integrator": (_choice("implicit", "rk4"), "implicit"),
             "substeps": (_substeps, "auto"),
+            "integration": (_choice("consistent", "nodal"), "consistent"),
+            "stabilisation": (_nonneg, 0.1),
+            "volumes": (_choice("mesh", "support"), "mesh"),
         },
         # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
         # a diverging one with more Newton iterations and sub-steps.

@@ -98,11 +98,13 @@ class MeshlessForces(FreeDofs):
     free/expand, M on the pattern, vertex_mass, n_free, pattern.
 
     op: mls.GradientOperator; V (n,) nodal volumes; mass (n,) nodal masses;
-    mu, lam, kv: Lame parameters and volume stiffness (Pa); pinned: fixed node ids."""
+    mu, lam, kv: Lame parameters and volume stiffness (Pa); pinned: fixed node ids;
+    stabilisation: None or S (n, w, w), the constant scalar stencil stiffness of the
+    fit-residual energy 1/2 sum_i x_{s_i}^T (S_i x I_3) x_{s_i} (integration.py)."""
 
     mass_kind = "lumped"
 
-    def __init__(self, X, op, V, mass, mu, lam, kv, pinned=()):
+    def __init__(self, X, op, V, mass, mu, lam, kv, pinned=(), stabilisation=None):
         self.X = np.ascontiguousarray(X, dtype=np.float64)
         self.n_verts = len(self.X)
         self.op = op
@@ -115,7 +117,18 @@ class MeshlessForces(FreeDofs):
         free = self.pattern.free_dof >= 0
         self.M_data[self.pattern.diagonal] = np.repeat(self.vertex_mass, 3)[free]
         self.M = self.pattern.matrix(self.M_data)
+        self.S = None
+        if stabilisation is not None:
+            self.S = np.ascontiguousarray(stabilisation, dtype=np.float64)
         self.timings = {}
+
+    def _stabilisation(self, x):
+        """(E_hg, per-stencil forces (n, w, 3)) of the fit-residual energy, or (0, None)."""
+        if self.S is None:
+            return 0.0, None
+        xs = x[self.op.stencil]                                         # (n, w, 3)
+        fs = np.matmul(self.S, xs)
+        return 0.5 * float(np.einsum("nad,nad->", xs, fs)), fs
 
     def _law(self, x, want_hessian=False, project=False):
         F = self.op.deformation_gradients(x)
@@ -123,21 +136,32 @@ class MeshlessForces(FreeDofs):
 
     def energy(self, x):
         psi, _, _ = self._law(x)
-        return float(self.V @ psi)
+        return float(self.V @ psi) + self._stabilisation(x)[0]
 
     def forces(self, x):
         psi, P, _ = self._law(x)
         fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
-        return float(self.V @ psi), assemble_vector(self.op.stencil, fe, self.n_verts)
+        e_hg, f_hg = self._stabilisation(x)
+        if f_hg is not None:
+            fe = fe + f_hg
+        return float(self.V @ psi) + e_hg, assemble_vector(self.op.stencil, fe, self.n_verts)
 
     def tangent(self, x, project=False, out=None):
         t0 = time.perf_counter()
         psi, P, H = self._law(x, want_hessian=True, project=project)
         fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
         Ke = stencil_stiffness(self.op.c, H, self.V)
+        e_hg, f_hg = self._stabilisation(x)
+        if f_hg is not None:
+            fe = fe + f_hg
+            n, w = self.S.shape[:2]
+            Ke = Ke.reshape(n, w, 3, w, 3)             # rows 3a + p, columns 3b + q: S_i[a, b] delta_pq
+            for p in range(3):
+                Ke[:, :, p, :, p] += self.S
+            Ke = Ke.reshape(n, 3 * w, 3 * w)
         t1 = time.perf_counter()
         f = assemble_vector(self.op.stencil, fe, self.n_verts)
         K = assemble_matrix(self.pattern, Ke, out)
         t2 = time.perf_counter()
         self.timings = {"element_ms": 1e3 * (t1 - t0), "scatter_ms": 1e3 * (t2 - t1)}
-        return float(self.V @ psi), f, K
+        return float(self.V @ psi) + e_hg, f, K

@@ -17,16 +17,48 @@ State x, v (n, 3). Time integration:
     rk4: explicit RK4 with sub-steps (explicit.py).
 Pins: fixed nodes (their DOFs are removed from the unknowns, they stay neighbours).
 """
+from dataclasses import replace
+
 from ..fem.backward_euler import BackwardEuler, NewtonSettings
 from ..fem.full_model import VertexState
+from ..fem.mass import lumped_mass
 from ..mesh.tetmesh import signed_volumes
 from .explicit import RK4, auto_substeps, max_frequency
 from .forces import MeshlessForces
+from .integration import boundary_vectors, consistent_coefficients, stabilisation_matrices
 from .mls import gradient_operator
 from .neighbourhoods import find_neighbourhoods
 
 DEFAULTS = {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1, "integrator": "implicit",
-            "substeps": "auto"}
+            "substeps": "auto", "integration": "consistent", "stabilisation": 0.1,
+            "volumes": "mesh"}
+
+
+def build_forces(X, tets, triangles, material, settings, pinned=()):
+    """(MeshlessForces, Neighbourhoods, integration residual or None) of nodes X (n, 3), the
+    vertices of tets (t, 4) with outward surface triangles (s, 3), for a material (mu, lam,
+    density) and model.meshless settings (DEFAULTS for missing keys)."""
+    cfg = dict(DEFAULTS, **(settings or {}))
+    nb = find_neighbourhoods(X, cfg["neighbours"], cfg["support_scale"])
+    op = gradient_operator(X, nb.nbr, nb.h)
+    vol = signed_volumes(X, tets)
+    if cfg["volumes"] == "mesh":
+        # The tet mesh's lumped vertex volumes (a quarter of each tet's): a partition of
+        # the body, so boundary nodes get their share and no more (docs/method.md §19.4).
+        V = lumped_mass(tets, vol, 1.0, len(X))
+    else:
+        r3 = nb.rbar ** 3                      # [HZ] eq. 2, scaled to the mesh's volume
+        V = r3 * (float(vol.sum()) / r3.sum())
+    residual = None
+    if cfg["integration"] == "consistent":
+        c, residual = consistent_coefficients(X, op.stencil, op.c, V, nb.h,
+                                              boundary_vectors(X, triangles, len(X)))
+        op = replace(op, c=c)
+    S = (stabilisation_matrices(X, op.stencil, op.c, op.weights, V, material.mu, float(cfg["stabilisation"]))
+         if cfg["stabilisation"] > 0 else None)
+    kv = float(cfg["volume_stiffness"]) * material.mu
+    forces = MeshlessForces(X, op, V, material.density * V, material.mu, material.lam, kv, pinned, S)
+    return forces, nb, residual
 
 
 class MeshlessModel(VertexState):
@@ -41,17 +73,10 @@ class MeshlessModel(VertexState):
         self.body = body
         cfg = dict(DEFAULTS, **(settings or {}))
         self.settings = cfg
-        X = body.vertices
-        nb = find_neighbourhoods(X, cfg["neighbours"], cfg["support_scale"])
-        self.neighbourhoods = nb
-        self.op = gradient_operator(X, nb.nbr, nb.h)
-        self.mesh_volume = float(signed_volumes(X, body.tets).sum())
-        r3 = nb.rbar ** 3
-        V = r3 * (self.mesh_volume / r3.sum())
-        mat = body.material
-        mass = mat.density * V
-        kv = float(cfg["volume_stiffness"]) * mat.mu
-        self.force_model = MeshlessForces(X, self.op, V, mass, mat.mu, mat.lam, kv, body.pinned)
+        self.force_model, self.neighbourhoods, self.integration_residual = build_forces(
+            body.vertices, body.tets, body.surface.vertex_ids[body.surface.triangles], body.material,
+            cfg, body.pinned)
+        self.op = self.force_model.op
         self.vertex_mass = self.force_model.vertex_mass
         newton = NewtonSettings(max_iterations=integrator["newton_iterations"], tolerance=integrator["tolerance"],
                                 line_search=integrator["line_search"], projection=integrator["projection"],
