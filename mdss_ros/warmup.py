@@ -7,9 +7,9 @@ under load, in the middle of its precompute, where it looked like a hang. The bo
 runs this module once after installing, with a progress line, so the cost is paid where
 the user expects to wait and is never paid again.
 
-It steps two tiny models through the code paths a scene uses: a full-space model and a
-reduced multi-domain model with cubature, each pressed by a sphere collider, with the
-stability guard on. Nothing is cached but the kernels (the precompute cache is off).
+It steps three tiny models through the code paths a scene uses: a full-space model, a
+reduced multi-domain model with cubature and a meshless model, each pressed by a sphere
+collider, with the stability guard on. Nothing is cached but the kernels (the precompute cache is off).
 
     python -m mdss_ros.warmup          # prints one line per model and the time taken
 """
@@ -32,7 +32,7 @@ def _scene_overrides(kind):
     return over
 
 
-def warm(kinds=("full", "reduced"), say=print):
+def warm(kinds=("full", "reduced", "meshless"), say=print):
     """Build and step each kind of model once; returns the seconds each took."""
     from . import threads
     from .precompute import PrecomputeCache

@@ -339,3 +339,19 @@ def test_meshless_scene_keys_are_validated():
                                       "stabilisation": 0.1, "volumes": "mesh"}
     with pytest.raises(SceneError, match="support_scale"):      # too small a support: caught at build
         Simulator(_scene(support_scale=0.5))
+
+
+@pytest.mark.parametrize("project", [False, True])
+def test_compiled_node_pass_matches_the_numpy_reference(project):
+    """kernels.node_kernel against forces.py's numpy path: energy, forces and stiffness on
+    a large deformation with the volume term and the stabilisation on, projected or not."""
+    mesh, _ = _cloud(perturb=0.1)
+    fm = _forces(mesh, kv=0.5, stabilisation=0.2)
+    x = _deformed(mesh.vertices, amp=0.2)
+    x[:, 0] -= 0.4 * mesh.vertices[:, 2]          # and a strong shear, so some H_i are indefinite
+    got = fm.tangent(x, project=project)
+    fm.backend = "numpy"
+    ref = fm.tangent(x, project=project)
+    assert np.isclose(got[0], ref[0], rtol=1e-12)
+    assert np.abs(got[1] - ref[1]).max() < 1e-10 * np.abs(ref[1]).max()
+    assert np.abs(got[2] - ref[2]).max() < 1e-10 * np.abs(ref[2]).max()

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..fem.assembly import assemble_matrix, assemble_vector, stiffness_pattern
 from ..fem.force_model import FreeDofs
+from .kernels import node_pass
 
 _EPS = np.zeros((3, 3, 3))
 _EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
@@ -120,6 +121,8 @@ class MeshlessForces(FreeDofs):
         self.S = None
         if stabilisation is not None:
             self.S = np.ascontiguousarray(stabilisation, dtype=np.float64)
+        self.backend = "numba"              # or "numpy": the reference the tests compare with
+        self._stiff_buffer = None
         self.timings = {}
 
     def _stabilisation(self, x):
@@ -130,38 +133,43 @@ class MeshlessForces(FreeDofs):
         fs = np.matmul(self.S, xs)
         return 0.5 * float(np.einsum("nad,nad->", xs, fs)), fs
 
-    def _law(self, x, want_hessian=False, project=False):
+    def node_terms(self, x, want_hessian=False, project=False):
+        """(E, stencil forces (n, w, 3), stencil stiffness (n, 3w, 3w) or None) at x: the
+        compiled pass (kernels.py), or this module's numpy reference when backend is 'numpy'."""
+        if self.backend == "numba":
+            e, fe, Ke = node_pass(x, self.op.stencil, self.op.c, self.V, self.mu, self.lam, self.kv, self.S,
+                                  want_hessian, project, self._stiff_buffer if want_hessian else None)
+            if want_hessian:
+                self._stiff_buffer = Ke
+            return float(e.sum()), fe, Ke
         F = self.op.deformation_gradients(x)
-        return stvk_volume(F, self.mu, self.lam, self.kv, want_hessian, project)
-
-    def energy(self, x):
-        psi, _, _ = self._law(x)
-        return float(self.V @ psi) + self._stabilisation(x)[0]
-
-    def forces(self, x):
-        psi, P, _ = self._law(x)
+        psi, P, H = stvk_volume(F, self.mu, self.lam, self.kv, want_hessian, project)
         fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
         e_hg, f_hg = self._stabilisation(x)
+        Ke = stencil_stiffness(self.op.c, H, self.V) if want_hessian else None
         if f_hg is not None:
             fe = fe + f_hg
-        return float(self.V @ psi) + e_hg, assemble_vector(self.op.stencil, fe, self.n_verts)
+            if want_hessian:
+                n, w = self.S.shape[:2]
+                Ke = Ke.reshape(n, w, 3, w, 3)         # rows 3a + p, columns 3b + q: S_i[a, b] delta_pq
+                for p in range(3):
+                    Ke[:, :, p, :, p] += self.S
+                Ke = Ke.reshape(n, 3 * w, 3 * w)
+        return float(self.V @ psi) + e_hg, fe, Ke
+
+    def energy(self, x):
+        return self.node_terms(x)[0]
+
+    def forces(self, x):
+        E, fe, _ = self.node_terms(x)
+        return E, assemble_vector(self.op.stencil, fe, self.n_verts)
 
     def tangent(self, x, project=False, out=None):
         t0 = time.perf_counter()
-        psi, P, H = self._law(x, want_hessian=True, project=project)
-        fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
-        Ke = stencil_stiffness(self.op.c, H, self.V)
-        e_hg, f_hg = self._stabilisation(x)
-        if f_hg is not None:
-            fe = fe + f_hg
-            n, w = self.S.shape[:2]
-            Ke = Ke.reshape(n, w, 3, w, 3)             # rows 3a + p, columns 3b + q: S_i[a, b] delta_pq
-            for p in range(3):
-                Ke[:, :, p, :, p] += self.S
-            Ke = Ke.reshape(n, 3 * w, 3 * w)
+        E, fe, Ke = self.node_terms(x, want_hessian=True, project=project)
         t1 = time.perf_counter()
         f = assemble_vector(self.op.stencil, fe, self.n_verts)
         K = assemble_matrix(self.pattern, Ke, out)
         t2 = time.perf_counter()
         self.timings = {"element_ms": 1e3 * (t1 - t0), "scatter_ms": 1e3 * (t2 - t1)}
-        return float(self.V @ psi) + e_hg, f, K
+        return E, f, K
