@@ -67,19 +67,38 @@ class GradientOperator:
         return self.deformation_gradients(u)
 
 
+def moments(X, nbr, h):
+    """(X_ij (n, k, 3), w_ij (n, k), A_i (n, 3, 3)) of nodes X (n, 3), neighbours nbr (n, k)
+    and support radii h (n,); a padded slot (nbr[i, j] == i) has weight 0."""
+    X = np.asarray(X, dtype=np.float64)
+    n = len(nbr)
+    Xij = X[nbr] - X[:, None, :]                                   # (n, k, 3); 0 in a padded slot
+    r = np.linalg.norm(Xij, axis=2) / h[:, None]
+    w = kernel(r)                                                  # (n, k)
+    w[nbr == np.arange(n)[:, None]] = 0.0                          # padding (neighbourhoods.grow)
+    return Xij, w, np.einsum("nk,nka,nkb->nab", w, Xij, Xij, optimize=True)
+
+
+def conditions(X, nbr, h):
+    """Condition number (n,) of each node's moment matrix A_i; inf where A_i is singular
+    or fewer than 3 neighbours carry weight."""
+    _, w, A = moments(X, nbr, h)
+    lam = np.linalg.eigvalsh(A)
+    singular = ((w > 0).sum(1) < 3) | (lam[:, 0] <= 1e-14 * lam[:, 2])
+    cond = np.full(len(A), np.inf)
+    cond[~singular] = lam[~singular, 2] / lam[~singular, 0]
+    return cond
+
+
 def gradient_operator(X, nbr, h, rcond=1e-6):
     """MLS gradient operator of nodes X (n, 3) with neighbours nbr (n, k) and support radii
     h (n,). rcond: eigenvalue floor of the moment matrices relative to their largest."""
-    X = np.asarray(X, dtype=np.float64)
     n, k = nbr.shape
-    Xij = X[nbr] - X[:, None, :]                                   # (n, k, 3)
-    r = np.linalg.norm(Xij, axis=2) / h[:, None]
-    w = kernel(r)                                                  # (n, k)
+    Xij, w, A = moments(X, nbr, h)
     few = np.flatnonzero((w > 0).sum(1) < 3)
     if few.size:
         raise SceneError(f"meshless model: {few.size} nodes have fewer than 3 neighbours inside their "
                          f"support (e.g. node {few[0]}); raise model.meshless.support_scale or neighbours")
-    A = np.einsum("nk,nka,nkb->nab", w, Xij, Xij, optimize=True)   # (n, 3, 3)
     lam, Q = np.linalg.eigh(A)                                     # ascending
     top = lam[:, 2:3]
     cond = top[:, 0] / np.maximum(lam[:, 0], 1e-300 * top[:, 0])

@@ -17,7 +17,10 @@ State x, v (n, 3). Time integration:
     rk4: explicit RK4 with sub-steps (explicit.py).
 Pins: fixed nodes (their DOFs are removed from the unknowns, they stay neighbours).
 """
-from dataclasses import replace
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
 
 from ..fem.backward_euler import BackwardEuler, NewtonSettings
 from ..fem.full_model import VertexState
@@ -26,8 +29,26 @@ from ..mesh.tetmesh import signed_volumes
 from .explicit import RK4, auto_substeps, max_frequency
 from .forces import MeshlessForces
 from .integration import boundary_vectors, consistent_coefficients, stabilisation_matrices
-from .mls import gradient_operator
-from .neighbourhoods import find_neighbourhoods
+from .mls import conditions, gradient_operator
+from .neighbourhoods import find_neighbourhoods, grow
+
+#: Moment matrices with a condition number above this get their node's neighbourhood
+#: widened (k -> 2k nearest, at most GROWTH_ROUNDS times). On the product's scenes the
+#: largest is 13 (a one-cell-thick hammock); a first-order fit through neighbours that
+#: span a thousand times less across one direction than along the others amplifies the
+#: second-order part of the motion in that direction as much.
+COND_LIMIT = 1.0e3
+GROWTH_ROUNDS = 2
+
+
+@dataclass(frozen=True)
+class Build:
+    """What build_forces found: the neighbourhoods, how many nodes needed wider ones, how
+    many stayed ill-conditioned after that, and the integration constraint's residual."""
+    neighbourhoods: object
+    grown: int
+    ill_conditioned: int
+    integration_residual: object
 
 DEFAULTS = {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1, "integrator": "implicit",
             "substeps": "auto", "integration": "consistent", "stabilisation": 0.1,
@@ -35,11 +56,20 @@ DEFAULTS = {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1, "in
 
 
 def build_forces(X, tets, triangles, material, settings, pinned=()):
-    """(MeshlessForces, Neighbourhoods, integration residual or None) of nodes X (n, 3), the
+    """(MeshlessForces, Build) of nodes X (n, 3), the
     vertices of tets (t, 4) with outward surface triangles (s, 3), for a material (mu, lam,
     density) and model.meshless settings (DEFAULTS for missing keys)."""
     cfg = dict(DEFAULTS, **(settings or {}))
     nb = find_neighbourhoods(X, cfg["neighbours"], cfg["support_scale"])
+    grown = np.zeros(len(X), dtype=bool)
+    for _ in range(GROWTH_ROUNDS):
+        # Nearly coplanar or collinear neighbours (thin parts, edges): widen those nodes'
+        # neighbourhoods before inverting their moment matrices (docs/method.md §19.2).
+        bad = np.flatnonzero(conditions(X, nb.nbr, nb.h) > COND_LIMIT)
+        if bad.size == 0:
+            break
+        grown[bad] = True
+        nb = grow(X, nb, bad, cfg["support_scale"])
     op = gradient_operator(X, nb.nbr, nb.h)
     vol = signed_volumes(X, tets)
     if cfg["volumes"] == "mesh":
@@ -58,7 +88,7 @@ def build_forces(X, tets, triangles, material, settings, pinned=()):
          if cfg["stabilisation"] > 0 else None)
     kv = float(cfg["volume_stiffness"]) * material.mu
     forces = MeshlessForces(X, op, V, material.density * V, material.mu, material.lam, kv, pinned, S)
-    return forces, nb, residual
+    return forces, Build(nb, int(grown.sum()), int((op.cond > COND_LIMIT).sum()), residual)
 
 
 class MeshlessModel(VertexState):
@@ -73,10 +103,16 @@ class MeshlessModel(VertexState):
         self.body = body
         cfg = dict(DEFAULTS, **(settings or {}))
         self.settings = cfg
-        self.force_model, self.neighbourhoods, self.integration_residual = build_forces(
+        self.force_model, self.build = build_forces(
             body.vertices, body.tets, body.surface.vertex_ids[body.surface.triangles], body.material,
             cfg, body.pinned)
         self.op = self.force_model.op
+        self.neighbourhoods = self.build.neighbourhoods
+        self.integration_residual = self.build.integration_residual
+        if self.build.ill_conditioned:
+            warnings.warn(f"meshless model: {self.build.ill_conditioned} nodes keep an ill-conditioned moment matrix "
+                          f"(condition > {COND_LIMIT:g}) after widening their neighbourhoods; the body is thinner "
+                          f"than its node spacing there (refine the mesh across it); see --explain")
         self.vertex_mass = self.force_model.vertex_mass
         newton = NewtonSettings(max_iterations=integrator["newton_iterations"], tolerance=integrator["tolerance"],
                                 line_search=integrator["line_search"], projection=integrator["projection"],
@@ -101,8 +137,19 @@ class MeshlessModel(VertexState):
                   + (f" (auto: omega_max {self.omega_max:.4g} rad/s)" if self.omega_max else "")
                   if cfg["integrator"] == "rk4" else
                   f"backward Euler, {self.integrator.settings.max_iterations} Newton iteration(s)")
-        return [f"meshless model ([HZ] MLS, nodal integration, docs/method.md §19): {len(self.x)} nodes "
-                f"(the mesh vertices), {self.n_dofs} DOFs, {nb.k} neighbours each, support radius "
-                f"{cfg['support_scale']:g} x mean neighbour distance ({nb.h.min():.3g} to {nb.h.max():.3g} m), "
-                f"{self.op.floored} ill-conditioned moment matrices floored; StVK law with k_v = "
-                f"{cfg['volume_stiffness']:g} mu; {scheme}"]
+        b = self.build
+        cond = (f"{b.grown} nodes with ill-conditioned moment matrices (condition > {COND_LIMIT:g}: nearly "
+                f"coplanar neighbours) got wider neighbourhoods"
+                + (f", {b.ill_conditioned} stayed ill-conditioned (the body is thinner than its node spacing "
+                   f"there: refine the mesh across it)" if b.ill_conditioned else "")
+                + (f", {self.op.floored} moment matrices floored" if self.op.floored else ""))
+        integ = ("consistent nodal integration (integration constraint met to "
+                 f"{b.integration_residual:.1e})" if cfg["integration"] == "consistent" else
+                 "raw nodal integration (no integration-constraint correction)")
+        return [f"meshless model ([HZ] MLS, docs/method.md §19): {len(self.x)} nodes "
+                f"(the mesh vertices), {self.n_dofs} DOFs, {cfg['neighbours']} neighbours each (stencils "
+                f"{nb.k} wide), support radius {cfg['support_scale']:g} x mean neighbour distance "
+                f"({nb.h.min():.3g} to {nb.h.max():.3g} m); {cond}",
+                f"  {integ}; fit-residual stabilisation {cfg['stabilisation']:g} mu; integration weights "
+                f"{'the tet mesh vertex volumes' if cfg['volumes'] == 'mesh' else '[HZ] eq. 2 support volumes'}; "
+                f"[HZ]'s StVK law with k_v = {cfg['volume_stiffness']:g} mu; {scheme}"]

@@ -7,10 +7,16 @@ other nodes (scipy cKDTree, exact k-NN; ties broken by the tree) and a spherical
     h_i    = support_scale * rbar_i                 (n,)   support radius
 
 Arrays:
-    nbr   (n, k) int64    neighbour ids, nearest first (node i itself excluded)
-    dist  (n, k) float64  |X_j - X_i| at rest
-    rbar  (n,)            mean neighbour distance
+    nbr   (n, k) int64    neighbour ids, nearest first (node i itself excluded); a row
+                          shorter than k (a grown one's neighbours, see `grow`) is padded
+                          with i itself at distance inf, so its weight is 0
+    dist  (n, k) float64  |X_j - X_i| at rest (inf in the padding)
+    rbar  (n,)            mean neighbour distance (over the real neighbours)
     h     (n,)            support radius
+
+`grow` widens the neighbourhoods of chosen nodes (those with an ill-conditioned moment
+matrix, mls.py): their k nearest become their 2k nearest, the support radius follows from
+the new mean distance, and every other row is padded to the new width.
 
 The neighbour lists are fixed at rest (total Lagrangian, like [HZ] and Mueller et al. 2004):
 nothing is searched again while the body moves.
@@ -57,4 +63,26 @@ def find_neighbourhoods(X, k=MAX_NEIGHBOURS_PAPER, support_scale=2.0):
     if np.any(dist <= 0.0):
         raise SceneError("meshless model: duplicate nodes (two mesh vertices at the same position)")
     rbar = dist.mean(axis=1)
+    return Neighbourhoods(nbr=nbr, dist=dist, rbar=rbar, h=float(support_scale) * rbar)
+
+
+def grow(X, nb, nodes, support_scale=2.0):
+    """Neighbourhoods nb with the rows of nodes (m,) widened to the 2k nearest (capped at
+    n - 1); other rows padded (module docstring)."""
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    n, k = nb.nbr.shape
+    k2 = int(min(2 * k, n - 1))
+    if k2 <= k or len(nodes) == 0:
+        return nb
+    nodes = np.asarray(nodes, dtype=np.int64)
+    dist2, idx2 = cKDTree(X).query(X[nodes], k=k2 + 1)
+    own = idx2 == nodes[:, None]
+    keep = ~own
+    idx2, dist2 = idx2[keep].reshape(len(nodes), k2), dist2[keep].reshape(len(nodes), k2)
+    nbr = np.repeat(np.arange(n, dtype=np.int64)[:, None], k2, axis=1)
+    dist = np.full((n, k2), np.inf)
+    nbr[:, :k], dist[:, :k] = nb.nbr, nb.dist
+    nbr[nodes], dist[nodes] = idx2, dist2
+    rbar = nb.rbar.copy()
+    rbar[nodes] = dist2.mean(axis=1)
     return Neighbourhoods(nbr=nbr, dist=dist, rbar=rbar, h=float(support_scale) * rbar)
