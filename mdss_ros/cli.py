@@ -523,7 +523,8 @@ def main(argv=None):
                                           "(JSON + heat maps into --out)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--quick", action="store_true", help="one-at-a-time cells around the base point, fewer steps")
-    p.add_argument("--kinds", help="comma-separated model kinds (default: full,reduced)")
+    p.add_argument("--kinds", help="comma-separated model kinds of full,reduced,meshless (default: full,reduced; "
+                                   "the meshless model runs with one material, its own law)")
     p.add_argument("--materials", help="comma-separated materials (default: stvk,corotated,neohookean)")
     p.set_defaults(func=cmd_stability)
 

@@ -6,6 +6,7 @@ docstring gives the setup (bottom-fixed 2 m cube, contact radius <= 2 cm, so the
 100 contact radii wide and its fixed bottom stiffens the answer by about 0.7 %).
 """
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,12 +63,15 @@ def test_hertz_full_fem_indentation_within_5_percent_at_a_over_h_3():
 @pytest.mark.claims
 def test_verify_hertz_quick_report(tmp_path):
     from mdss_ros.cli import main
-    assert main(["verify", "hertz", "--out", str(tmp_path), "--quick"]) == 0
+    # The meshless rows have their own tests (below: in seconds on a small block; slow: at
+    # the quick level on this block), so this claim keeps its FEM-only cost.
+    assert main(["verify", "hertz", "--out", str(tmp_path), "--quick", "--set", "meshless_levels=[]"]) == 0
     data = json.loads((tmp_path / "hertz.json").read_text())
     rows = data["rows"]
     full = sorted((r for r in rows if r["kind"] == "full"), key=lambda r: r["dofs"])
     reduced = [r for r in rows if r["kind"] == "reduced"]
     assert len(full) == len(hz.QUICK["levels"]) and len(reduced) == len(hz.QUICK["reduced_levels"])
+    assert len(rows) == len(full) + len(reduced) and "meshless_vs_full" not in data
     for r in rows:
         assert len(r["points"]) == len(hz.QUICK["force_fractions"])
         for p in r["points"]:
@@ -90,5 +94,146 @@ def test_verify_hertz_quick_report(tmp_path):
     assert red["dofs"] < same["dofs"] / 3
     for p_red, p_full in zip(red["points"], same["points"]):
         assert abs(p_red["rel_error"] - p_full["rel_error"]) < 0.03
+    for name in data["plots"]:
+        assert (tmp_path / name).stat().st_size > 5000
+
+
+# ---------------------------------------------------------------------- meshless rows
+# A 0.2 m block (567 nodes at a/h = 1) instead of the 2 m one: the plumbing of the meshless
+# rows in seconds. Its bottom is 10 contact radii down, so the numbers are not Hertz's.
+TINY = {"block": 0.2, "cell_coarse": 0.05, "force_fractions": [0.4, 1.0], "timing_steps": 2,
+        "force_tol": 0.02, "levels": [1], "reduced_levels": [], "meshless_levels": [1]}
+
+
+def test_meshless_hertz_scene_is_the_full_mesh_with_the_static_step():
+    cfg = dict(hz.HERTZ, **TINY, meshless={"neighbours": 12})
+    full, ml = Simulator(hz.hertz_scene(cfg, 1, "full")), Simulator(hz.hertz_scene(cfg, 1, "meshless"))
+    assert ml.model.kind == "meshless" and full.model.kind == "full"
+    # Nodes are the graded mesh's vertices; the same pins, hence the same DOFs.
+    np.testing.assert_array_equal(ml.vertex_positions(), full.vertex_positions())
+    assert ml.model.n_dofs == full.model.n_dofs
+    assert ml.model.dt == hz.STATIC["dt"] and ml.model.newton_iterations == hz.STATIC["newton_iterations"]
+    assert ml.model.settings["neighbours"] == 12                 # cfg["meshless"] reaches model.meshless
+    with pytest.raises(hz.ReportError, match="unknown model kind"):
+        hz.hertz_scene(cfg, 1, "meshles")
+
+
+def test_meshless_interactive_timing_restores_the_static_settings():
+    sim = Simulator(hz.hertz_scene(dict(hz.HERTZ, **TINY), 1, "meshless"))
+    ms = hz.interactive_step_ms(sim, 2)
+    assert ms > 0
+    assert sim.model.dt == hz.STATIC["dt"] and sim.model.newton_iterations == hz.STATIC["newton_iterations"]
+
+
+def _row(kind, level, dofs, max_error, step_ms):
+    return {"kind": kind, "level": level, "dofs": dofs, "max_error": max_error, "l2_error": 0.8 * max_error,
+            "step_ms": step_ms, "static_step_ms": 2 * step_ms}
+
+
+def test_meshless_comparison_picks_first_within_and_the_cheapest_as_accurate_full_row():
+    rows = [_row("full", 1, 1000, 0.08, 10), _row("full", 2, 3000, 0.04, 30), _row("full", 3, 9000, 0.02, 90),
+            _row("meshless", 1, 1000, 0.09, 50), _row("meshless", 2, 3000, 0.035, 200),
+            _row("meshless", 3, 9000, 0.01, 900),
+            {"kind": "meshless", "level": 4, "failed": "ReportError: no static rest"}]
+    assert hz.first_within(rows, "meshless", 0.05) == 3000
+    cmp, note = hz.meshless_comparison(rows)
+    # meshless a/h = 2 (3.5 %) is first within 5 %; full a/h = 2 (4 %) is less accurate, so
+    # the match is full a/h = 3, the cheapest full row at 3.5 % or better.
+    assert cmp["within_5%"] and cmp["meshless"]["level"] == 2 and cmp["full"]["level"] == 3
+    assert "200 ms" in note and "90 ms" in note and "failed: a/h = 4" in note
+    # No meshless level within 5 %: the most accurate one is compared, and said so.
+    cmp, note = hz.meshless_comparison([_row("full", 1, 1000, 0.12, 10), _row("meshless", 1, 1000, 0.09, 50),
+                                        _row("meshless", 2, 3000, 0.10, 200)])
+    assert not cmp["within_5%"] and cmp["meshless"]["level"] == 1 and cmp["full"] is None
+    assert "no level within 5 %" in note and "no full level" in note
+    # Equal accuracy counts as a match.
+    cmp, _ = hz.meshless_comparison([_row("full", 1, 1000, 0.04, 10), _row("meshless", 1, 1000, 0.04, 50)])
+    assert cmp["full"]["level"] == 1
+    # Every meshless level failed: the note says why, no comparison.
+    cmp, note = hz.meshless_comparison(rows[:3] + rows[-1:])
+    assert cmp["meshless"] is None and "no static rest" in note
+
+
+def test_plots_give_meshless_its_own_colour_and_legend(tmp_path, monkeypatch):
+    from mdss_ros.verify import plotting
+    figs = []
+    monkeypatch.setattr(plotting, "save_figure", lambda fig, path: figs.append(fig) or str(path))
+    pt = lambda f, d: {"force": f, "depth": d}                                          # noqa: E731
+    rows = []
+    for kind, err in (("full", 0.03), ("meshless", 0.2)):
+        for i, dofs in enumerate((1000, 4000)):
+            r = _row(kind, i + 1, dofs, err / (i + 1), 10.0 * dofs)
+            r["points"] = [pt(0.5, 1e-3 * (1 + err)), pt(1.0, 1.6e-3 * (1 + err))]
+            r["fixed_force"] = {"depth": 1.2e-3 * (1 + err), "depth_hertz_target": 1.2e-3, "target": 0.7}
+            rows.append(r)
+    rows.append({"kind": "meshless", "level": 3, "failed": "ReportError: no static rest"})
+    hz.fd_curves(rows, 0.5, 1e5, tmp_path / "a.png")
+    hz.l2_vs_dofs(rows, tmp_path / "b.png")
+    hz.fixed_force_convergence(rows, tmp_path / "c.png")
+    hz.timing_vs_dofs(rows, tmp_path / "d.png")
+    assert len(figs) == 4
+    for fig in figs:
+        ax = fig.axes[0]
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert any(lab.startswith("meshless") for lab in labels) and any(lab.startswith("full") for lab in labels)
+        colour = {line.get_label().split()[0]: line.get_color() for line in ax.get_lines()
+                  if line.get_label().split()[0] in ("full", "meshless")}
+        assert colour["full"] != colour["meshless"]
+        # the failed level is not drawn: only the two measured meshless rows
+        if ax.get_xlabel().startswith("indentation"):
+            assert sum(lab.startswith("meshless") for lab in labels) == 2
+
+
+def test_hertz_report_with_a_meshless_row_on_a_small_block(tmp_path):
+    """hertz_report end to end with one full and one meshless level on the 0.2 m block:
+    the meshless row is measured like the FEM one (sweep, force control, timing), the report
+    names the meshless comparison, and every plot is drawn."""
+    data = hz.hertz_report(tmp_path, quick=True, overrides=TINY, log=lambda *a: None)
+    rows = {r["kind"]: r for r in data["rows"]}
+    assert set(rows) == {"full", "meshless"}
+    ml, full = rows["meshless"], rows["full"]
+    assert "failed" not in ml, ml.get("failed")
+    assert ml["dofs"] == full["dofs"] == ml["full_space_dofs"]
+    assert len(ml["points"]) == 2 and all(p["force"] > 0 for p in ml["points"])
+    ff = ml["fixed_force"]
+    assert abs(ff["force"] - ff["target"]) <= TINY["force_tol"] * ff["target"] + 1e-12
+    assert ml["step_ms"] > 0 and set(ml["guard"]) == {"recoveries", "degraded", "failures"}
+    assert data["within"]["meshless"]["5%"] in (None, ml["dofs"])
+    cmp = data["meshless_vs_full"]
+    assert cmp["meshless"]["dofs"] == ml["dofs"] and cmp["within_5%"] == (ml["max_error"] <= 0.05)
+    assert any(n.startswith("meshless: ") for n in data["notes"])
+    assert "meshless" in data["table"]
+    assert len(data["plots"]) == 4
+    for p in data["plots"]:
+        assert Path(p).stat().st_size > 5000
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_verify_hertz_quick_meshless_rows(tmp_path):
+    """The quick meshless level on the 2 m block next to one full level (a/h = 2). HEAD's
+    unstabilised model did not settle there (force changing 5 % a step, the guard keeping
+    steps degraded on inverted tets: 6 min under load): a failed level must be a row that
+    says why, and the report goes on; a measured one is checked like the FEM rows."""
+    from mdss_ros.cli import main
+    assert main(["verify", "hertz", "--out", str(tmp_path), "--quick", "--set", "levels=[2]",
+                 "--set", "reduced_levels=[]"]) == 0
+    data = json.loads((tmp_path / "hertz.json").read_text())
+    rows = {r["kind"]: r for r in data["rows"]}
+    assert set(rows) == {"full", "meshless"} and rows["meshless"]["level"] == hz.QUICK["meshless_levels"][0]
+    ml, cmp = rows["meshless"], data["meshless_vs_full"]
+    note = next(n for n in data["notes"] if n.startswith("meshless: "))
+    if "failed" in ml:
+        assert "no static rest" in ml["failed"] or "Error" in ml["failed"]
+        assert cmp["meshless"] is None and ml["failed"].split(": ", 1)[1][:40] in note
+    else:
+        from mdss_ros.body import build_body
+        from mdss_ros.scene import load_scene
+        # Its nodes are the vertices of the graded mesh at its level.
+        mesh = build_body(load_scene(hz.hertz_scene(dict(hz.HERTZ, **hz.QUICK), ml["level"], "full")))
+        assert ml["vertices"] == len(mesh.vertices) and ml["dofs"] == ml["full_space_dofs"]
+        assert len(ml["points"]) == len(hz.QUICK["force_fractions"]) and ml["step_ms"] > 0
+        assert cmp["meshless"]["dofs"] == ml["dofs"]
+        assert cmp["within_5%"] == (ml["max_error"] <= 0.05)
     for name in data["plots"]:
         assert (tmp_path / name).stat().st_size > 5000

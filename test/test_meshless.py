@@ -338,8 +338,8 @@ def test_meshless_scene_keys_are_validated():
     assert s["model"]["meshless"] == {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1,
                                       "integrator": "implicit", "substeps": "auto", "integration": "consistent",
                                       "stabilisation": 0.1, "volumes": "mesh"}
-    # Too small a support: the nodes without 3 weighted neighbours get wider neighbourhoods
-    # (and so larger supports); at 0.1 x the mean distance even those stay empty.
+    # Too small a support: the nodes without 3 weighted neighbours get neighbours chosen over
+    # the octants (and so larger supports); at 0.1 x the mean distance even those stay empty.
     b = Simulator(_scene(support_scale=0.5)).model.build
     assert b.grown > 0 and b.ill_conditioned == 0
     with pytest.raises(SceneError, match="support_scale"):
@@ -362,10 +362,10 @@ def test_compiled_node_pass_matches_the_numpy_reference(project):
     assert np.abs(got[2] - ref[2]).max() < 1e-10 * np.abs(ref[2]).max()
 
 
-def test_thin_parts_widen_ill_conditioned_neighbourhoods():
+def test_thin_parts_rechoose_ill_conditioned_neighbourhoods():
     """A plate two nodes thick whose layers are 1/40 of the in-plane spacing apart: the
     16 nearest give moment matrices with condition numbers about 1e3-1e4, so those nodes get
-    their 32 (then 64) nearest. It still cannot see across 0.5 mm well, so the build
+    neighbours chosen over the octants. It still cannot see across 0.5 mm well, so the build
     says so (warning, explain) instead of failing; a gradient stays exact for a linear field."""
     scene = {"name": "plate",
              "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.0005], "cell": 0.02},
@@ -374,12 +374,12 @@ def test_thin_parts_widen_ill_conditioned_neighbourhoods():
     with pytest.warns(UserWarning, match="ill-conditioned moment matrix"):
         sim = Simulator(scene)
     b = sim.model.build
-    assert b.grown > 0 and sim.model.op.stencil.shape[1] > 17
+    assert b.grown > 0 and b.ill_conditioned > 0
     text = "\n".join(sim.model.explain())
     assert f"{b.grown} nodes with ill-conditioned moment matrices" in text
     X = sim.model.body.vertices
     G = np.random.default_rng(7).normal(size=(3, 3)) * 1e-3
     assert np.abs(sim.model.op.gradients(X @ G.T) - G).max() < 1e-9
-    # A well-shaped body widens nothing.
+    # A well-shaped body changes nothing.
     ok = Simulator(_scene()).model.build
     assert ok.grown == 0 and ok.ill_conditioned == 0

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from mdss_ros.verify.stability_study import MATERIALS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -17,22 +19,33 @@ def _key(r):
 
 
 def check_report(report):
-    """The checks on a stability.json (also usable on a full run's JSON)."""
+    """The checks on a stability.json (also usable on a full run's JSON). Returns the failed
+    full and reduced cells (the target: none); a failed meshless cell must say why."""
     rows = report["rows"]
-    assert len(rows) == report["design"]["cells"] * 6
+    # {kind: materials}; a JSON from before the meshless column ran full and reduced x 3.
+    per_kind = report["design"].get("kinds") or {"full": MATERIALS, "reduced": MATERIALS}
+    runs = sum(len(m) for m in per_kind.values())
+    assert len(rows) == report["design"]["cells"] * runs
+    for kind, materials in per_kind.items():
+        assert {r["material"] for r in rows if r["kind"] == kind} == set(materials)
+    if "meshless" in per_kind:          # one material: the meshless law is its own
+        assert per_kind["meshless"] == [report["design"]["meshless_material"]]
     # every value of every parameter appears (the contact cells have their own axes)
     matrix = [r for r in rows if "mu" not in r]
     for name in ("young", "poisson", "dt", "spin", "force"):
         assert {r[name] for r in matrix} == set(report["design"][name])
     contact = [r for r in rows if "mu" in r]
-    assert len(contact) == report["design"]["contact"]["cells"] * 6
+    assert len(contact) == report["design"]["contact"]["cells"] * runs
     if not report["design"]["quick"]:
         for name in ("mu", "speed", "young"):
             assert {r[name] for r in contact} == set(report["design"]["contact"][name])
     # The target of issue 7: no failed cell. (The last 5, a 1 kPa body under the 1 kN load,
     # were fixed by the compression barrier, fem/materials.py, and the guard's untangle.)
-    failed = [r for r in rows if r["status"] == "failed"]
+    # Issue 7's target is the full and reduced models'; the meshless model (a first version,
+    # docs/method.md §19.6) is reported as it is.
+    failed = [r for r in rows if r["status"] == "failed" and r["kind"] != "meshless"]
     assert not failed, [(_key(r), r["why"]) for r in failed]
+    assert all(r["why"] for r in rows if r["status"] == "failed")
     for r in rows:
         if r["status"] == "recovered":          # every recovered cell says what the guard did
             assert r["actions"] and all(a.startswith(("rollback", "untangled")) for a in r["actions"])
@@ -52,8 +65,9 @@ def test_stability_quick_matrix(tmp_path):
                          timeout=3600)
     assert "stable" in out.stdout and "[  1/" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
     report = json.loads((tmp_path / "stability.json").read_text())
-    for kind in ("full", "reduced"):
+    for kind in ("full", "reduced"):            # the default kinds (meshless: --kinds meshless)
         assert (tmp_path / f"stability_{kind}.png").stat().st_size > 10_000
+    assert {r["kind"] for r in report["rows"]} == {"full", "reduced"}
     assert not check_report(report)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
 
@@ -77,3 +91,54 @@ def test_a_stable_cell_runs_its_steps_only():
     r = run_cell("full", "corotated", BASE, 8)
     assert r["status"] == "stable" and r["steps_run"] == 8 and r["inverted_release"] == 0
     assert r["inverted_end"] == 0 and not r["why"]
+
+
+# ---------------------------------------------------------------------- the meshless column
+def test_meshless_column_runs_one_material():
+    from mdss_ros.verify import stability_study as st
+    assert st.kind_materials("full") == st.MATERIALS == st.kind_materials("reduced")
+    assert st.kind_materials("meshless") == [st.MESHLESS_MATERIAL]
+    assert st.kind_materials("meshless", ["neohookean", "corotated"]) == ["neohookean"]
+    assert st.kind_materials("full", ["corotated"]) == ["corotated"]
+
+
+def test_meshless_cell_scene_has_no_domains_and_builds_a_meshless_model():
+    from mdss_ros import Simulator
+    from mdss_ros.verify import stability_study as st
+    scene = st.cell_scene("meshless", "stvk", 1e7, 0.3, 1.0 / 90.0, 0.0)
+    assert set(scene["model"]) == {"kind", "integrator"}
+    # full and reduced cells keep their model section
+    assert st.cell_scene("reduced", "stvk", 1e7, 0.3, 1.0 / 90.0, 0.0)["model"] == {
+        "kind": "reduced", "domains": {"count": 2}, "modes": 8,
+        "cubature": {"samples": 0, "interface": "exact"}, "integrator": {"dt": 1.0 / 90.0, "newton_iterations": 1}}
+    sim = Simulator(scene)
+    assert sim.model.kind == "meshless" and sim.model.newton_iterations == 1
+    contact = Simulator(st.contact_scene("meshless", "stvk", 1e4, 0.5))
+    assert contact.model.kind == "meshless" and set(contact.colliders) == {"floor", "ball"}
+
+
+def test_meshless_base_and_contact_cells_run_and_are_classified(tmp_path):
+    """The base cell (1e7 Pa cantilever, 1 N tip load) and a contact cell through run_cell
+    and the study's summary, heat map and JSON, the meshless column alone (as
+    `mdss stability --kinds meshless` runs it). A few seconds."""
+    from mdss_ros.verify import stability_study as st
+    steps = 8
+    base = st.run_cell("meshless", "stvk", st.BASE, steps)
+    assert base["kind"] == "meshless" and base["steps_run"] == steps
+    # The base point is stable for the meshless model too (HEAD: stable, 0.9 s at 16 steps).
+    assert base["status"] == "stable" and not base["why"] and base["inverted_end"] == 0
+    cell = st.contact_design(quick=True)[0]
+    contact = st.run_cell("meshless", "stvk", cell, steps)
+    assert contact["status"] in st.COLOURS and contact["dofs"] > 0
+    rows = [base, contact]
+    counts, table = st.summary(rows)
+    assert set(counts) == {"meshless"} and sum(counts["meshless"].values()) == 2
+    assert "meshless stvk" in table and "one material (stvk)" in table
+    png = st.heatmap(rows, "meshless", [st.BASE, cell], tmp_path / "m.png")
+    assert (tmp_path / "m.png").stat().st_size > 5000 and png.endswith("m.png")
+    report = {"design": {"cells": 2, "kinds": {"meshless": ["stvk"]}, "meshless_material": "stvk", "quick": True,
+                         "young": sorted({r["young"] for r in rows if "mu" not in r}),
+                         "poisson": [st.BASE["poisson"]], "dt": [st.BASE["dt"]], "spin": [0.0], "force": [1.0],
+                         "energy_bound": st.ENERGY_BOUND, "contact": {"cells": 1}},
+              "rows": rows}
+    assert not check_report(report)

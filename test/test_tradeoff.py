@@ -72,11 +72,17 @@ def test_sweep_varies_every_knob_around_the_scene():
         if knob == "dt":
             assert sc.dt != scene.dt and sc["model"]["modes"] == scene["model"]["modes"]
         if knob == "kind":
-            assert sc["model"]["kind"] == "full"
+            assert sc["model"]["kind"] in ("full", "meshless") and sc["model"]["integrator"]["newton_iterations"] == 1
+            assert sc.dt == scene.dt
+    # The other model kinds a user would run instead: full-space FEM and the meshless model.
+    kinds = {lab: load_scene("msg_scenes/cantilever.yaml", ov)["model"]["kind"] for lab, k, ov in variants
+             if k == "kind"}
+    assert kinds == {"full space, 1 Newton iteration": "full", "meshless, 1 Newton iteration": "meshless"}
     exact = next(ov for lab, _, ov in variants if lab == "exact cubature")
     assert exact["model.cubature"]["samples"] == 0
     quick = sweep_variants(scene["model"], "quick")
     assert len(quick) < len(variants) and {k for _, k, _ in quick} >= {"scene", "kind"}
+    assert {lab for lab, k, _ in quick if k == "kind"} == set(kinds)
 
 
 def test_probe_steps_land_on_shared_times_for_related_dts():
@@ -131,6 +137,11 @@ def test_quick_report_on_the_cantilever(tmp_path):
     assert not [r for r in data["rows"] if "failed" in r], [r.get("failed") for r in data["rows"]]
     scene, full = rows["scene"], rows["full space, 1 Newton iteration"]
     assert scene["kind"] == "reduced" and full["kind"] == "full"
+    # The meshless row: the same mesh's vertices as nodes, so the full model's DOFs, and a
+    # point of the Pareto plot like every other row.
+    meshless = rows["meshless, 1 Newton iteration"]
+    assert meshless["kind"] == "meshless" and meshless["dofs"] == full["dofs"]
+    assert meshless["step_ms"] > 0 and "pareto" in meshless
     # The README's row: the scene's model is within 2 % RMS of the ground truth over its
     # timeline (full report, 4 s: 1.54 %; this 1 s quick run: 1.54 %).
     assert scene["rms_rel"] < 0.02

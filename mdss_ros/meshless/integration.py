@@ -78,9 +78,10 @@ def _nullspace_projectors(X, stencil, h):
     """P_i (n, w, w): projector onto the null space of G_i = [1; (X_{s_i} - X_i) / h_i]."""
     rel = (X[stencil] - X[stencil[:, :1]]) / h[:, None, None]     # (n, w, 3), scaled for conditioning
     G = np.concatenate([np.ones(stencil.shape + (1,)), rel], axis=2)          # (n, w, 4)
-    GtG = np.einsum("nwa,nwb->nab", G, G)
-    Gpinv = np.linalg.solve(GtG, G.transpose(0, 2, 1))           # (n, 4, w)
-    return np.eye(stencil.shape[1])[None] - G @ Gpinv
+    # pinv, not a solve: a stencil whose points are coplanar (a node that stayed
+    # ill-conditioned, mls.py) has a singular G^T G; its correction then stays in the
+    # null space of the rank-deficient G, which is what the least change asks for.
+    return np.eye(stencil.shape[1])[None] - G @ np.linalg.pinv(G, rcond=1e-10)
 
 
 def _anchors(X):

@@ -33,17 +33,18 @@ from .mls import conditions, gradient_operator
 from .neighbourhoods import find_neighbourhoods, grow
 
 #: Moment matrices with a condition number above this get their node's neighbourhood
-#: widened (k -> 2k nearest, at most GROWTH_ROUNDS times). On the product's scenes the
+#: chosen again over the octants round it (neighbourhoods.grow, at most GROWTH_ROUNDS
+#: times, from 8k, 32k, then 128k candidates). On the product's scenes the
 #: largest is 13 (a one-cell-thick hammock); a first-order fit through neighbours that
 #: span a thousand times less across one direction than along the others amplifies the
 #: second-order part of the motion in that direction as much.
 COND_LIMIT = 1.0e3
-GROWTH_ROUNDS = 2
+GROWTH_ROUNDS = 3
 
 
 @dataclass(frozen=True)
 class Build:
-    """What build_forces found: the neighbourhoods, how many nodes needed wider ones, how
+    """What build_forces found: the neighbourhoods, how many nodes needed theirs chosen again over the octants, how
     many stayed ill-conditioned after that, and the integration constraint's residual."""
     neighbourhoods: object
     grown: int
@@ -62,14 +63,14 @@ def build_forces(X, tets, triangles, material, settings, pinned=()):
     cfg = dict(DEFAULTS, **(settings or {}))
     nb = find_neighbourhoods(X, cfg["neighbours"], cfg["support_scale"])
     grown = np.zeros(len(X), dtype=bool)
-    for _ in range(GROWTH_ROUNDS):
-        # Nearly coplanar or collinear neighbours (thin parts, edges): widen those nodes'
-        # neighbourhoods before inverting their moment matrices (docs/method.md §19.2).
+    for round_ in range(GROWTH_ROUNDS):
+        # Nearly coplanar or collinear neighbours (thin parts, edges, graded meshes): choose
+        # those nodes' neighbourhoods again before inverting their moment matrices (§19.2).
         bad = np.flatnonzero(conditions(X, nb.nbr, nb.h) > COND_LIMIT)
         if bad.size == 0:
             break
         grown[bad] = True
-        nb = grow(X, nb, bad, cfg["support_scale"])
+        nb = grow(X, nb, bad, cfg["support_scale"], round_)
     op = gradient_operator(X, nb.nbr, nb.h)
     vol = signed_volumes(X, tets)
     if cfg["volumes"] == "mesh":
@@ -111,7 +112,7 @@ class MeshlessModel(VertexState):
         self.integration_residual = self.build.integration_residual
         if self.build.ill_conditioned:
             warnings.warn(f"meshless model: {self.build.ill_conditioned} nodes keep an ill-conditioned moment matrix "
-                          f"(condition > {COND_LIMIT:g}) after widening their neighbourhoods; the body is thinner "
+                          f"(condition > {COND_LIMIT:g}) after choosing their neighbourhoods over the octants; the body is thinner "
                           f"than its node spacing there (refine the mesh across it); see --explain")
         self.vertex_mass = self.force_model.vertex_mass
         newton = NewtonSettings(max_iterations=integrator["newton_iterations"], tolerance=integrator["tolerance"],
@@ -139,7 +140,7 @@ class MeshlessModel(VertexState):
                   f"backward Euler, {self.integrator.settings.max_iterations} Newton iteration(s)")
         b = self.build
         cond = (f"{b.grown} nodes with ill-conditioned moment matrices (condition > {COND_LIMIT:g}: nearly "
-                f"coplanar neighbours) got wider neighbourhoods"
+                f"coplanar neighbours) got neighbours chosen over the octants round them"
                 + (f", {b.ill_conditioned} stayed ill-conditioned (the body is thinner than its node spacing "
                    f"there: refine the mesh across it)" if b.ill_conditioned else "")
                 + (f", {self.op.floored} moment matrices floored" if self.op.floored else ""))

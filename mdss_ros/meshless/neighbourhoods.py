@@ -7,16 +7,14 @@ other nodes (scipy cKDTree, exact k-NN; ties broken by the tree) and a spherical
     h_i    = support_scale * rbar_i                 (n,)   support radius
 
 Arrays:
-    nbr   (n, k) int64    neighbour ids, nearest first (node i itself excluded); a row
-                          shorter than k (a grown one's neighbours, see `grow`) is padded
-                          with i itself at distance inf, so its weight is 0
-    dist  (n, k) float64  |X_j - X_i| at rest (inf in the padding)
-    rbar  (n,)            mean neighbour distance (over the real neighbours)
+    nbr   (n, k) int64    neighbour ids, nearest first (node i itself excluded)
+    dist  (n, k) float64  |X_j - X_i| at rest
+    rbar  (n,)            mean neighbour distance
     h     (n,)            support radius
 
-`grow` widens the neighbourhoods of chosen nodes (those with an ill-conditioned moment
-matrix, mls.py): their k nearest become their 2k nearest, the support radius follows from
-the new mean distance, and every other row is padded to the new width.
+`grow` chooses the neighbourhoods of some nodes again (those with an ill-conditioned
+moment matrix, mls.py): k neighbours balanced over the octants round the node instead of
+the k nearest.
 
 The neighbour lists are fixed at rest (total Lagrangian, like [HZ] and Mueller et al. 2004):
 nothing is searched again while the body moves.
@@ -28,6 +26,8 @@ from scipy.spatial import cKDTree
 
 from ..errors import SceneError
 
+PER_OCTANT = 2                 # direction-balanced regrowth (grow)
+SUPPORT_OVER_FARTHEST = 1.25
 MAX_NEIGHBOURS_PAPER = 16      # [HZ] section 3.3: "the number of neighbouring nodes is limited to 16"
 
 
@@ -66,23 +66,41 @@ def find_neighbourhoods(X, k=MAX_NEIGHBOURS_PAPER, support_scale=2.0):
     return Neighbourhoods(nbr=nbr, dist=dist, rbar=rbar, h=float(support_scale) * rbar)
 
 
-def grow(X, nb, nodes, support_scale=2.0):
-    """Neighbourhoods nb with the rows of nodes (m,) widened to the 2k nearest (capped at
-    n - 1); other rows padded (module docstring)."""
+def grow(X, nb, nodes, support_scale=2.0, round_=0):
+    """Neighbourhoods nb with the rows of nodes (m,) chosen again, direction-balanced: of
+    their 8k 4^round_ nearest candidates, the nearest PER_OCTANT in each octant round the
+    node, then the nearest others, k in all (the row width stays k). The support radius
+    follows from the new mean distance, and reaches past the farthest pick.
+
+    Why octants: on a graded tensor-product mesh (graded_block: cells 0.02 m across one
+    way and 0.15 m the other) a node's 16, 32 or 64 nearest all lie in one plane, and no
+    count of nearest neighbours sees across it; two per octant always do, where the body
+    has nodes on that side."""
     X = np.ascontiguousarray(X, dtype=np.float64)
     n, k = nb.nbr.shape
-    k2 = int(min(2 * k, n - 1))
-    if k2 <= k or len(nodes) == 0:
-        return nb
     nodes = np.asarray(nodes, dtype=np.int64)
-    dist2, idx2 = cKDTree(X).query(X[nodes], k=k2 + 1)
-    own = idx2 == nodes[:, None]
-    keep = ~own
-    idx2, dist2 = idx2[keep].reshape(len(nodes), k2), dist2[keep].reshape(len(nodes), k2)
-    nbr = np.repeat(np.arange(n, dtype=np.int64)[:, None], k2, axis=1)
-    dist = np.full((n, k2), np.inf)
-    nbr[:, :k], dist[:, :k] = nb.nbr, nb.dist
-    nbr[nodes], dist[nodes] = idx2, dist2
+    kc = int(min(8 * k * 4 ** round_, n - 1))
+    if len(nodes) == 0 or kc <= k:
+        return nb
+    dist_c, idx_c = cKDTree(X).query(X[nodes], k=kc + 1)
+    own = idx_c == nodes[:, None]
+    idx_c = idx_c[~own].reshape(len(nodes), kc)
+    dist_c = dist_c[~own].reshape(len(nodes), kc)
+    rel = X[idx_c] - X[nodes][:, None, :]
+    octant = (rel[..., 0] > 0) + 2 * (rel[..., 1] > 0) + 4 * (rel[..., 2] > 0)          # (m, kc)
+    onehot = octant[..., None] == np.arange(8)
+    rank = (np.cumsum(onehot, axis=1) - 1)[onehot].reshape(octant.shape)             # rank within its octant
+    # Priority: octant picks first (by distance), then the rest by distance; keep k.
+    key = np.where(rank < PER_OCTANT, 0, 1) * kc + np.arange(kc)
+    pick = np.argsort(key, axis=1, kind="stable")[:, :k]
+    pick.sort(axis=1)                                                              # nearest first again
+    nbr, dist = nb.nbr.copy(), nb.dist.copy()
+    nbr[nodes] = np.take_along_axis(idx_c, pick, axis=1)
+    dist[nodes] = np.take_along_axis(dist_c, pick, axis=1)
     rbar = nb.rbar.copy()
-    rbar[nodes] = dist2.mean(axis=1)
-    return Neighbourhoods(nbr=nbr, dist=dist, rbar=rbar, h=float(support_scale) * rbar)
+    rbar[nodes] = dist[nodes].mean(axis=1)
+    h = float(support_scale) * rbar
+    # The octant picks may lie far beyond the mean distance: keep them inside the support
+    # (weight w(0.8) = 0.1 for the farthest), or they would be chosen and weigh nothing.
+    h[nodes] = np.maximum(h[nodes], SUPPORT_OVER_FARTHEST * dist[nodes].max(axis=1))
+    return Neighbourhoods(nbr=nbr, dist=dist, rbar=rbar, h=h)

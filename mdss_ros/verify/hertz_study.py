@@ -35,6 +35,15 @@ domain (docs/method.md §12) and the rest of the block one pinned subspace domai
 (`reduced_modes` linear modes). Its far field is what the subspace adds to the error: at
 a/h = 2 a zone of 3 a_ref gave -12 %, 6 a_ref -8.6 %, 10 a_ref -7.3 % (30 modes) and -6.7 %
 (80 modes), against -5.5 % for full-space FEM on the same mesh (0.25 F_max).
+The meshless model (`model.kind: meshless`, docs/method.md §19) at the meshless levels: its
+nodes are the same graded mesh's vertices, its static step the same backward Euler (its law
+is its own StVK with a volume term; only young, poisson, density are read). Its stiffness has
+about 5 x the non-zeros of the tet mesh's, so a level costs several times the FEM row of the
+same mesh, and its levels stop lower. A meshless level whose static solve does not settle is
+reported as a failed row (the first version's nodal integration is not stabilised, §19.6),
+not an abort of the FEM rows. Compared at equal accuracy: the first meshless level within
+5 % at every force, its ms per step, and the cheapest full FEM row at least as accurate
+(`accuracy_match`).
 
 Finite block vs half-space: a fixed bottom at depth L removes the far-field settlement the
 half-space has, about F (1 + nu)(3 - 2 nu) / (2 pi E L) under a point load, which is
@@ -46,10 +55,12 @@ sqrt(sum (d_i - d_H(F_i))^2 / sum d_H(F_i)^2) (the paper's Fig. 3 "L2 norm of th
 pairs against theory"). "Within 5 %" means max_i |e_i| <= 5 %.
 """
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
 
+from ..errors import MdssError
 from .reduced_reports import Progress, ReportError, format_table, study_config
 
 HERTZ = {
@@ -61,6 +72,12 @@ HERTZ = {
     "fixed_force_fraction": 0.6,   # Fig. 5: indentation at this fraction of the largest force
     "levels": [1.5, 2, 3, 4],      # a_ref / h of the full-space meshes
     "reduced_levels": [2, 3, 4],   # a_ref / h of the reduced models (4: first within 5 % at every force)
+    # a_ref / h of the meshless models (4.3K, 7.4K, 11.7K nodes). At 1 (11.9K DOFs, the
+    # unstabilised model of c43f974) a static Newton iteration took 0.8 s (factorisation 0.3,
+    # contact solves 0.4), 5-7 x the FEM's on the same mesh; FEM's cost grows ~6 x from a/h 1
+    # to 2, so a/h = 2 is ~5 s an iteration: minutes if static steps take a few iterations.
+    "meshless_levels": [1, 1.5, 2],
+    "meshless": {},                # the scene's model.meshless settings (neighbours, support_scale, ...)
     "fine_radius": 2.0,            # fine zone half-width / a_ref
     "growth": 1.5,                 # graded_block growth factor of the cell sizes
     "cell_coarse": 0.5,            # m, far-field cell
@@ -76,7 +93,9 @@ HERTZ = {
     # (reaction oscillating by +-4 % at a / h = 1.3, measured while building this study).
     "face_contacts": False,
 }
-QUICK = {"levels": [2, 3], "reduced_levels": [2], "force_fractions": [0.4, 1.0], "timing_steps": 2}
+QUICK = {"levels": [2, 3], "reduced_levels": [2], "meshless_levels": [1], "force_fractions": [0.4, 1.0],
+         "timing_steps": 2}
+KINDS = ("full", "reduced", "meshless")
 
 # Static solve by the product's own step (see the module docstring).
 STATIC = {"scheme": "one_step", "dt": 10.0, "newton_iterations": 10, "tolerance": 1e-6}
@@ -108,8 +127,9 @@ def indentation_errors(forces, depths, radius, e_star):
 
 # ---------------------------------------------------------------------- scenes
 def hertz_scene(cfg, level, kind="full"):
-    """Scene dict of the block and sphere at resolution level a_ref / h = level; kind 'full'
-    or 'reduced' (contact zone full space). The sphere starts just touching the top."""
+    """Scene dict of the block and sphere at resolution level a_ref / h = level; kind 'full',
+    'reduced' (contact zone full space) or 'meshless' (nodes = the mesh's vertices,
+    cfg["meshless"] as its model.meshless settings). The sphere starts just touching the top."""
     L, a, R = float(cfg["block"]), float(cfg["a_ref"]), float(cfg["sphere_radius"])
     if not level > 0:
         raise ReportError(f"hertz: resolution level must be > 0, got {level!r}")
@@ -117,7 +137,14 @@ def hertz_scene(cfg, level, kind="full"):
     mesh = {"generator": "graded_block", "size": [L, L, L], "origin": [-L / 2, -L / 2, -L],
             "cell_coarse": float(cfg["cell_coarse"]), "cell_fine": h, "focus": [0.0, 0.0, 0.0],
             "radius": float(cfg["fine_radius"]) * a, "growth": float(cfg["growth"])}
+    if kind not in KINDS:
+        raise ReportError(f"hertz: unknown model kind {kind!r} (kinds: {', '.join(KINDS)})")
     model = {"kind": kind, "integrator": dict(STATIC)}
+    if kind == "meshless":
+        # Same backward Euler as the full model; the one-step/two-step scheme is the
+        # reduced model's and means nothing here.
+        model["integrator"].pop("scheme")
+        model["meshless"] = dict(cfg.get("meshless") or {})
     if kind == "reduced":
         z = float(cfg["reduced_zone"]) * a
         model.update({"domains": {"regions": {"contact": {"box": [[-z, -z, -z], [z, z, 1.0]]},
@@ -140,7 +167,8 @@ def hertz_scene(cfg, level, kind="full"):
 def press_to_rest(sim, depth, radius, tol=1e-4, max_steps=8):
     """Hold the sphere `ball` at indentation depth (centre at z = radius - depth) and step
     the static Simulator until the reaction F changes by <= tol F between steps (at least
-    two steps). Returns {"depth", "force", "steps", "step_ms" (list), "contacts"}.
+    two steps). Returns {"depth", "force", "steps", "step_ms" (list), "contacts", "residual"
+    (the last step's Newton residual: the reaction is only a static one if it is small)}.
     """
     sim.set_collider_pose("ball", (0.0, 0.0, radius - depth))
     F_prev, step_ms, change = None, [], np.inf
@@ -155,10 +183,14 @@ def press_to_rest(sim, depth, radius, tol=1e-4, max_steps=8):
             change = abs(F - F_prev) / max(abs(F), 1e-300)
         if change <= tol:
             return {"depth": float(depth), "force": F, "steps": k + 1, "step_ms": step_ms,
-                    "contacts": int(len(sim.contacts()))}
+                    "contacts": int(len(sim.contacts())), "residual": float(sim.stats().get("residual", np.nan))}
         F_prev = F
+    st = sim.stats()
+    # Why it did not settle: an unconverged Newton solve or a step the guard kept degraded.
     raise ReportError(f"hertz: no static rest at indentation {depth:.4g} m in {max_steps} steps "
-                      f"(last force change {change:.2g} relative)")
+                      f"(last force change {change:.2g} relative; last step: F {F:.4g} N, Newton residual "
+                      f"{st.get('residual', np.nan):.2g}, guard {st.get('stability', '?')}"
+                      + (f" ({st['guard_reason']})" if st.get("guard_reason") else "") + ")")
 
 
 def force_controlled(sim, force, depth0, radius, force_tol=2e-3, tol=1e-4, max_steps=8, max_rounds=6):
@@ -182,7 +214,9 @@ def interactive_step_ms(sim, steps, dt=1.0 / 90.0):
     one Newton iteration), from the current pressed state; the static settings are
     restored afterwards. The state changes little (it starts at rest)."""
     model = sim.model
-    if model.kind == "full":
+    if model.kind in ("full", "meshless"):
+        # Vertex-state models (full FEM, meshless): the Newton count lives in the
+        # integrator's settings (their `newton_iterations` is a read-only view of it).
         get = lambda: model.integrator.settings.max_iterations          # noqa: E731
         put = lambda n: setattr(model.integrator.settings, "max_iterations", n)   # noqa: E731
     else:
@@ -225,7 +259,7 @@ def run_model(cfg, kind, level, log):
         d_h = float(hertz_indentation(res["force"], R, e_star))
         points.append({"target_force": target, "force": res["force"], "depth": res["depth"], "depth_hertz": d_h,
                        "rel_error": (res["depth"] - d_h) / d_h, "static_steps": res["steps"],
-                       "contacts": res["contacts"]})
+                       "contacts": res["contacts"], "newton_residual": res["residual"]})
         static_ms += res["step_ms"]
         log(f"  F = {res['force']:.4g} N (target {target:.4g}), d = {1e3 * res['depth']:.4g} mm vs Hertz "
             f"{1e3 * d_h:.4g} mm: {100 * points[-1]['rel_error']:+.2f} % ({res['steps']} static steps, "
@@ -241,8 +275,10 @@ def run_model(cfg, kind, level, log):
         f"{1e3 * d_h_ref:.4g} mm ({100 * (fixed['depth'] - d_h_ref) / d_h_ref:+.2f} %, {fixed['rounds']} rounds)")
     step_ms = interactive_step_ms(sim, cfg["timing_steps"])
     e, l2, emax = indentation_errors([p["force"] for p in points], [p["depth"] for p in points], R, e_star)
+    guard = {k: int(sim.stats().get(f"guard_{k}", 0)) for k in ("recoveries", "degraded", "failures")}
     log(f"  L2 error {100 * l2:.2f} %, max {100 * emax:.2f} %; interactive step {step_ms:.0f} ms, "
-        f"static step median {np.median(static_ms):.0f} ms")
+        f"static step median {np.median(static_ms):.0f} ms"
+        + (f"; stability guard acted: {guard}" if any(guard.values()) else ""))
     return {"kind": kind, "level": float(level), "cell_fine": h, "dofs": int(st["dofs"]),
             "vertices": int(st["vertices"]), "tets": int(st["tets"]), "build_s": build_s,
             "points": points, "l2_error": l2, "max_error": emax,
@@ -250,19 +286,80 @@ def run_model(cfg, kind, level, log):
                             "depth_hertz": d_h_ref, "depth_hertz_target": float(hertz_indentation(F_ref, R, e_star)),
                             "rel_error": (fixed["depth"] - d_h_ref) / d_h_ref, "rounds": fixed["rounds"]},
             "step_ms": step_ms, "static_step_ms": float(np.median(static_ms)), "sweep_s": sweep_s,
-            "full_space_dofs": int(sim.model.F) if kind == "reduced" else int(st["dofs"])}
+            "full_space_dofs": int(sim.model.F) if kind == "reduced" else int(st["dofs"]), "guard": guard}
 
 
 # ---------------------------------------------------------------------- report
+def _measured(rows):
+    """The rows that ran to the end (a failed meshless level has no points)."""
+    return [r for r in rows if "failed" not in r]
+
+
 def first_within(rows, kind, bound):
     """DOFs of the smallest model of `kind` whose max |e_i| <= bound (None if none is)."""
-    ok = [r["dofs"] for r in rows if r["kind"] == kind and r["max_error"] <= bound]
+    ok = [r["dofs"] for r in _measured(rows) if r["kind"] == kind and r["max_error"] <= bound]
     return min(ok) if ok else None
 
 
+def first_within_row(rows, kind, bound):
+    """The row of first_within (the smallest model of `kind` with max |e_i| <= bound), or None."""
+    ok = [r for r in _measured(rows) if r["kind"] == kind and r["max_error"] <= bound]
+    return min(ok, key=lambda r: r["dofs"]) if ok else None
+
+
+def accuracy_match(rows, kind, error):
+    """The cheapest (fewest DOFs) row of `kind` whose max |e_i| <= error: the model of that
+    kind at equal or the nearest better accuracy (None if no row of it is that accurate)."""
+    return first_within_row(rows, kind, error)
+
+
+def meshless_comparison(rows):
+    """The meshless model against full FEM at equal accuracy: the first meshless row within
+    5 % at every force (else the meshless row with the smallest max error, marked so), its ms
+    per step, and the cheapest full row at least as accurate. Returns (dict, note str)."""
+    ml = [r for r in _measured(rows) if r["kind"] == "meshless"]
+    failed = [r for r in rows if r["kind"] == "meshless" and "failed" in r]
+    if not ml:
+        why = "; ".join(f"a/h = {r['level']:g}: {r['failed']}" for r in failed) or "no meshless level run"
+        return {"meshless": None, "full": None, "within_5%": False}, f"meshless: no level measured ({why})"
+    m = first_within_row(rows, "meshless", 0.05)
+    within = m is not None
+    m = m or min(ml, key=lambda r: r["max_error"])
+    f = accuracy_match(rows, "full", m["max_error"])
+    pick = lambda r: None if r is None else {k: r[k] for k in ("level", "dofs", "max_error", "l2_error",  # noqa: E731
+                                                                 "step_ms", "static_step_ms")}
+    what = (f"first within 5 % at every force: a/h = {m['level']:g}" if within else
+            f"no level within 5 % at every force; most accurate a/h = {m['level']:g}")
+    note = (f"meshless: {what} ({m['dofs']} DOFs, max error {100 * m['max_error']:.2f} %), "
+            f"{m['step_ms']:.0f} ms per interactive step; full FEM at equal or better error: "
+            + (f"a/h = {f['level']:g} ({f['dofs']} DOFs, max {100 * f['max_error']:.2f} %), {f['step_ms']:.0f} ms "
+               f"per step ({m['step_ms'] / f['step_ms']:.2g} x)" if f else "no full level run is that accurate"))
+    if failed:
+        note += "; failed: " + "; ".join(f"a/h = {r['level']:g} ({r['failed']})" for r in failed)
+    return {"meshless": pick(m), "full": pick(f), "within_5%": within}, note
+
+
+def run_row(cfg, kind, level, log):
+    """run_model, except that a meshless level whose static solve fails becomes a row
+    {"kind", "level", "failed"} (module docstring): the FEM rows stay reported."""
+    try:
+        return run_model(cfg, kind, level, log)
+    except (ReportError, MdssError, np.linalg.LinAlgError) as err:
+        if kind != "meshless":
+            raise
+        # Where, for an error raised outside the study (a linear-algebra failure in the model).
+        ours = [f for f in traceback.extract_tb(err.__traceback__) if "mdss_ros" in f.filename
+                and "verify" not in f.filename]
+        where = f" (in {Path(ours[-1].filename).parent.name}/{Path(ours[-1].filename).name}:{ours[-1].name})" \
+            if ours else ""
+        log(f"  meshless a/h = {level:g}: FAILED: {err}{where}")
+        return {"kind": kind, "level": float(level), "cell_fine": cfg["a_ref"] / level,
+                "failed": f"{type(err).__name__}: {err}{where}"}
+
+
 def hertz_report(out, quick=False, overrides=None, log=None):
-    """Full-space FEM at several graded resolutions and the reduced model with a full-space
-    contact zone against Hertz theory (module docstring)."""
+    """Full-space FEM at several graded resolutions, the reduced model with a full-space
+    contact zone and the meshless model against Hertz theory (module docstring)."""
     cfg = study_config("hertz", HERTZ, QUICK, quick, overrides)
     log = log or Progress("hertz")
     R = float(cfg["sphere_radius"])
@@ -271,21 +368,26 @@ def hertz_report(out, quick=False, overrides=None, log=None):
     log(f"block {cfg['block']} m cube, bottom fixed; sphere R = {R} m; E* = {e_star:.5g} Pa; forces "
         f"{', '.join(f'{f * F_max:.3g}' for f in cfg['force_fractions'])} N (contact radius "
         f"{1e3 * cfg['a_ref'] * min(cfg['force_fractions']) ** (1 / 3):.3g}-{1e3 * cfg['a_ref']:.3g} mm)")
-    runs = [("full", lv) for lv in cfg["levels"]] + [("reduced", lv) for lv in cfg["reduced_levels"]]
+    runs = ([("full", lv) for lv in cfg["levels"]] + [("reduced", lv) for lv in cfg["reduced_levels"]]
+            + [("meshless", lv) for lv in cfg["meshless_levels"]])
     rows = []
     for k, (kind, level) in enumerate(runs):
         log(f"model {k + 1}/{len(runs)}")
-        rows.append(run_model(cfg, kind, level, log))
+        rows.append(run_row(cfg, kind, level, log))
     within = {kind: {"5%": first_within(rows, kind, 0.05), "3%": first_within(rows, kind, 0.03)}
-              for kind in ("full", "reduced")}
+              for kind in KINDS}
     finest = max((r for r in rows if r["kind"] == "full"), key=lambda r: r["dofs"])
     notes = [f"full model at its finest resolution (a/h = {finest['level']:g}, {finest['dofs']} DOFs): "
              f"L2 error {100 * finest['l2_error']:.2f} %, max {100 * finest['max_error']:.2f} % "
              f"(target 3 %: {'met' if finest['max_error'] <= 0.03 else 'NOT met'})"]
-    for kind in ("full", "reduced"):
+    for kind in ("full", "reduced"):             # the meshless one is in its comparison note
         dofs = within[kind]["5%"]
         notes.append(f"{kind}: first within 5 % (max over the sweep) at "
                      + (f"{dofs} DOFs" if dofs else "no resolution run"))
+    comparison = None
+    if any(r["kind"] == "meshless" for r in rows):
+        comparison, note = meshless_comparison(rows)
+        notes.append(note)
     notes.append("timings measured under load (a shared 2-core machine); interactive step = dt 1/90 s, "
                  "one Newton iteration, sphere in contact")
     for n in notes:
@@ -297,16 +399,21 @@ def hertz_report(out, quick=False, overrides=None, log=None):
     table = format_table(
         ["model", "a/h", "DOFs", "full-space DOFs", "L2 err %", "max err %", "d(F_ref) err %", "step ms",
          "static step ms", "build s"],
-        [[r["kind"], f"{r['level']:g}", r["dofs"], r["full_space_dofs"], f"{100 * r['l2_error']:.2f}",
-          f"{100 * r['max_error']:.2f}", f"{100 * r['fixed_force']['rel_error']:+.2f}", f"{r['step_ms']:.0f}",
-          f"{r['static_step_ms']:.0f}", f"{r['build_s']:.1f}"] for r in rows])
-    return {"config": dict(cfg, quick=quick, static_integrator=STATIC, e_star=e_star, max_force=F_max,
-                           control="displacement-controlled sweep; force-controlled fixed-force point"),
-            "rows": rows, "within": within, "notes": notes, "plots": plots, "table": table}
+        [[r["kind"], f"{r['level']:g}", "failed", "-", "-", "-", "-", "-", "-", "-"] if "failed" in r
+         else [r["kind"], f"{r['level']:g}", r["dofs"], r["full_space_dofs"], f"{100 * r['l2_error']:.2f}",
+               f"{100 * r['max_error']:.2f}", f"{100 * r['fixed_force']['rel_error']:+.2f}", f"{r['step_ms']:.0f}",
+               f"{r['static_step_ms']:.0f}", f"{r['build_s']:.1f}"] for r in rows])
+    result = {"config": dict(cfg, quick=quick, static_integrator=STATIC, e_star=e_star, max_force=F_max,
+                             control="displacement-controlled sweep; force-controlled fixed-force point"),
+              "rows": rows, "within": within, "notes": notes, "plots": plots, "table": table}
+    if comparison is not None:
+        result["meshless_vs_full"] = comparison
+    return result
 
 
 # ---------------------------------------------------------------------- plots
-_STYLE = {"full": dict(cmap="Blues", marker="o"), "reduced": dict(cmap="Reds", marker="s")}
+_STYLE = {"full": dict(cmap="Blues", marker="o"), "reduced": dict(cmap="Reds", marker="s"),
+          "meshless": dict(cmap="Greens", marker="^")}
 
 
 def _colour(kind, i, n):
@@ -315,7 +422,9 @@ def _colour(kind, i, n):
 
 
 def _by_kind(rows):
-    return {k: sorted((r for r in rows if r["kind"] == k), key=lambda r: r["dofs"]) for k in ("full", "reduced")}
+    """{kind: its measured rows by DOFs} for every kind with one (failed rows have no points)."""
+    groups = {k: sorted((r for r in _measured(rows) if r["kind"] == k), key=lambda r: r["dofs"]) for k in KINDS}
+    return {k: g for k, g in groups.items() if g}
 
 
 def fd_curves(rows, radius, e_star, path):
@@ -323,7 +432,7 @@ def fd_curves(rows, radius, e_star, path):
     from .plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    d_max = max(p["depth"] for r in rows for p in r["points"]) * 1.1
+    d_max = max(p["depth"] for r in _measured(rows) for p in r["points"]) * 1.1
     d = np.linspace(0.0, d_max, 200)
     ax.plot(1e3 * d, hertz_force(d, radius, e_star), "k-", lw=2, label="Hertz")
     for kind, group in _by_kind(rows).items():

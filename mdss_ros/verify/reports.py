@@ -8,7 +8,7 @@ from pathlib import Path
 from ..errors import ReportError
 from .reduced_reports import Progress, environment, format_table, write_json
 
-BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz")
+BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz", "meshless")
 NOT_BUILT = ()
 
 
@@ -34,6 +34,9 @@ def _study(name):
     if name == "hertz":
         from .hertz_study import hertz_report
         return hertz_report
+    if name == "meshless":
+        from .meshless_study import meshless_report
+        return meshless_report
     raise KeyError(name)
 
 

@@ -13,14 +13,21 @@ Base point: young 1e7, poisson 0.3, dt 1/90, spin 0, force 1. The design is
   * a half fraction (16) of the 32 corners of the box {1e3, 1e11} x {0, 0.499} x
     {1e-4, 1/30} x {0, 50} x {1, 1e3}: every pair of extremes meets (see `corners`),
 minus duplicates: 58 cells, each for model kind {full, reduced} and material {stvk,
-corotated, neohookean}. --quick runs one-at-a-time around the base (14 cells) plus the
-4 corners with spin 50, fewer steps.
+corotated, neohookean}, and for the meshless model (docs/method.md §19) with one material
+(MESHLESS_MATERIAL, stvk): its law is its own StVK with a volume term whatever
+`material.model` says (only young, poisson, density are read), so the three materials would
+run the same model three times. --quick runs one-at-a-time around the base (14 cells) plus
+the 4 corners with spin 50, fewer steps. `--kinds` picks model kinds (e.g. the meshless
+column alone), `--materials` materials (the meshless column takes MESHLESS_MATERIAL if
+picked, else the first one picked).
 
 Setup of a cell: spin 0 clamps the end x = 0 (a cantilever); spin > 0 frees the body
 (no pins) and spins it about the tilted axis (0.2, 0.3, 1) (tumbling, not a principal
 axis). Gravity -9.81 m/s^2, density 1000, no damping. The full model uses backward Euler
 with one Newton iteration (the papers' linearly implicit step); the reduced model two
-domains x 8 modes, exact forces (no cubature), one-step scheme, one Newton iteration.
+domains x 8 modes, exact forces (no cubature), one-step scheme, one Newton iteration; the
+meshless model its default settings (16 neighbours, implicit: the same backward Euler with
+one Newton iteration), no domains or modes.
 
 Observation after release. A cell that ends its steps with inverted tets is stepped on
 (load still released) until none is left, for at most OBSERVE_TRANSITS shear-wave transit
@@ -73,8 +80,12 @@ DTS = [1e-4, 1.0 / 90.0, 1.0 / 30.0]
 SPINS = [0.0, 10.0, 50.0]
 FORCES = [1.0, 1e3]
 BASE = {"young": 1e7, "poisson": 0.3, "dt": 1.0 / 90.0, "spin": 0.0, "force": 1.0}
-KINDS = ["full", "reduced"]
+KINDS = ["full", "reduced", "meshless"]
+# What `mdss stability` runs without --kinds: the models issue 7's target (no failed cell)
+# is for. The meshless column is asked for by name (--kinds meshless, or all three).
+DEFAULT_KINDS = ["full", "reduced"]
 MATERIALS = ["stvk", "corotated", "neohookean"]
+MESHLESS_MATERIAL = "stvk"      # the meshless column's one material (module docstring)
 TIP_FORCE = 1.0                 # N at force scale 1, pointing -z
 STEPS, QUICK_STEPS = 24, 16
 ENERGY_BOUND = 0.1
@@ -138,6 +149,25 @@ def design(quick=False):
     return out
 
 
+def kind_materials(kind, materials=None):
+    """The materials a model kind runs with, from the ones picked (default MATERIALS): every
+    one, except the meshless model's single MESHLESS_MATERIAL (or the first picked)."""
+    materials = list(materials or MATERIALS)
+    if kind != "meshless":
+        return materials
+    return [MESHLESS_MATERIAL if MESHLESS_MATERIAL in materials else materials[0]]
+
+
+def model_section(kind, dt):
+    """The scene's model section of a cell: the reduced model's two domains x 8 modes with
+    exact forces (full-space FEM ignores them); the meshless model has neither."""
+    integrator = {"dt": float(dt), "newton_iterations": 1}
+    if kind == "meshless":
+        return {"kind": kind, "integrator": integrator}
+    return {"kind": kind, "domains": {"count": 2}, "modes": 8,
+            "cubature": {"samples": 0, "interface": "exact"}, "integrator": integrator}
+
+
 def cell_scene(kind, material, young, poisson, dt, spin, force=1.0):
     """The scene dict of a cell (force is applied by run_cell, not the scene)."""
     return {
@@ -148,9 +178,7 @@ def cell_scene(kind, material, young, poisson, dt, spin, force=1.0):
                  "damping": {"alpha": 0.0, "beta": 0.0}},
         "pins": [] if spin else [{"box": [[-0.001, -1, -1], [0.001, 1, 1]]}],
         "handles": {"tip": {"box": [[0.199, -1, -1], [0.201, 1, 1]]}},
-        "model": {"kind": kind, "domains": {"count": 2}, "modes": 8,
-                  "cubature": {"samples": 0, "interface": "exact"},
-                  "integrator": {"dt": float(dt), "newton_iterations": 1}},
+        "model": model_section(kind, dt),
         "initial_velocity": {"angular": [float(a) for a in spin * SPIN_AXIS]},
         "gravity": [0.0, 0.0, -9.81],
     }
@@ -274,10 +302,10 @@ def cell_label(c):
 COLOURS = {"stable": "#4caf50", "recovered": "#ffb300", "failed": "#d32f2f"}
 
 
-def heatmap(rows, kind, cells, path):
+def heatmap(rows, kind, cells, path, materials=None):
     """One PNG per model kind: rows = cells (design order, labelled with their parameters),
-    columns = materials; colour = class, text = guard action count (r: recovered steps,
-    d: degraded steps, F: failed steps)."""
+    columns = materials (default: those the kind ran with, kind_materials); colour = class,
+    text = guard action count (r: recovered steps, d: degraded steps, F: failed steps)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -285,10 +313,11 @@ def heatmap(rows, kind, cells, path):
     from matplotlib.patches import Patch
     code = {"stable": 0, "recovered": 1, "failed": 2}
     by = {(r["material"], _key(r)): r for r in rows if r["kind"] == kind}
-    grid = np.full((len(cells), len(MATERIALS)), np.nan)
-    fig, ax = plt.subplots(figsize=(7.5, 0.22 * len(cells) + 1.6))
+    materials = list(materials or kind_materials(kind))
+    grid = np.full((len(cells), len(materials)), np.nan)
+    fig, ax = plt.subplots(figsize=(7.5 if len(materials) > 1 else 5.5, 0.22 * len(cells) + 1.6))
     for i, c in enumerate(cells):
-        for j, m in enumerate(MATERIALS):
+        for j, m in enumerate(materials):
             r = by.get((m, _key(c)))
             if r is None:
                 continue
@@ -299,7 +328,8 @@ def heatmap(rows, kind, cells, path):
             ax.text(j, i, text, ha="center", va="center", fontsize=6)
     ax.imshow(grid, aspect="auto", cmap=ListedColormap([COLOURS[k] for k in code]), vmin=0, vmax=2,
               interpolation="nearest")
-    ax.set_xticks(range(len(MATERIALS)), MATERIALS)
+    ax.set_xticks(range(len(materials)), [f"{m} (its own StVK law)" if kind == "meshless" else m
+                                           for m in materials])
     ax.set_yticks(range(len(cells)), [cell_label(c) for c in cells], fontsize=6)
     ax.xaxis.tick_top()
     ax.legend(handles=[Patch(color=v, label=k) for k, v in COLOURS.items()], loc="upper center",
@@ -313,17 +343,22 @@ def heatmap(rows, kind, cells, path):
 
 
 def summary(rows):
-    """{kind: {stable, recovered, failed}} and a printable table."""
-    counts = {k: Counter(r["status"] for r in rows if r["kind"] == k) for k in KINDS}
+    """{kind: {stable, recovered, failed}} for the kinds in rows, and a printable table."""
+    kinds = [k for k in KINDS if any(r["kind"] == k for r in rows)]
+    counts = {k: Counter(r["status"] for r in rows if r["kind"] == k) for k in kinds}
     lines = [f"{'model':8s} {'material':11s} {'stable':>7s} {'recovered':>10s} {'failed':>7s}"]
-    for k in KINDS:
+    for k in kinds:
         for m in MATERIALS:
             c = Counter(r["status"] for r in rows if r["kind"] == k and r["material"] == m)
             if sum(c.values()):
                 lines.append(f"{k:8s} {m:11s} {c['stable']:7d} {c['recovered']:10d} {c['failed']:7d}")
         lines.append(f"{k:8s} {'all':11s} {counts[k]['stable']:7d} {counts[k]['recovered']:10d} "
                      f"{counts[k]['failed']:7d}")
-    for k in KINDS:
+    if "meshless" in kinds:
+        used = sorted({r["material"] for r in rows if r["kind"] == "meshless"})
+        lines.append(f"meshless: one material ({', '.join(used)}): the meshless model's law is its own StVK "
+                     f"with a volume term whatever material.model says")
+    for k in kinds:
         rec = [r for r in rows if r["kind"] == k and r["status"] == "recovered"]
         if not rec:
             continue
@@ -342,15 +377,19 @@ def run_study(out, quick=False, kinds=None, materials=None, log=print):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cells = design(quick) + contact_design(quick)
-    kinds = kinds or KINDS
+    kinds = kinds or DEFAULT_KINDS
     materials = materials or MATERIALS
+    per_kind = {k: kind_materials(k, materials) for k in kinds}
     steps = QUICK_STEPS if quick else STEPS
-    total = len(cells) * len(kinds) * len(materials)
-    log(f"mdss stability: {len(cells)} cells x {len(kinds)} model kinds x {len(materials)} materials = "
-        f"{total} runs of {steps} steps")
+    total = len(cells) * sum(len(m) for m in per_kind.values())
+    log(f"mdss stability: {len(cells)} cells x ("
+        + " + ".join(f"{k} x {len(m)} material{'s' if len(m) > 1 else ''}" for k, m in per_kind.items())
+        + f") = {total} runs of {steps} steps"
+        + (f"; meshless with {per_kind['meshless'][0]} only (its own StVK law whatever material.model says)"
+           if "meshless" in per_kind else ""))
     rows, t0, n = [], time.perf_counter(), 0
     for kind in kinds:
-        for material in materials:
+        for material in per_kind[kind]:
             for c in cells:
                 n += 1
                 r = run_cell(kind, material, c, steps)
@@ -360,13 +399,16 @@ def run_study(out, quick=False, kinds=None, materials=None, log=print):
                     extra = f" ({', '.join(f'{a}: {k}' for a, k in r['actions'].items())})"
                 if r["steps_run"] > steps:
                     extra += f" [observed to step {r['steps_run']}, {r['inverted_release']} inverted at release]"
-                log(f"  [{n:3d}/{total} {time.perf_counter() - t0:6.0f} s] {kind:7s} {material:10s} "
+                log(f"  [{n:3d}/{total} {time.perf_counter() - t0:6.0f} s] {kind:8s} {material:10s} "
                     f"{cell_label(c):42s} {r['status']:9s} {r['seconds']:5.1f} s{extra}")
     counts, table = summary(rows)
-    plots = [heatmap(rows, k, cells, out / f"stability_{k}.png") for k in kinds]
+    # The meshless column shows the material it ran with; full and reduced every material.
+    plots = [heatmap(rows, k, cells, out / f"stability_{k}.png", per_kind[k] if k == "meshless" else None)
+             for k in kinds]
     report = {"design": {"young": YOUNG, "poisson": POISSON, "dt": DTS, "spin": SPINS, "force": FORCES,
                          "base": BASE, "quick": quick, "steps": steps, "tip_force_N": TIP_FORCE,
-                         "energy_bound": ENERGY_BOUND, "cells": len(cells),
+                         "energy_bound": ENERGY_BOUND, "cells": len(cells), "kinds": per_kind,
+                         "meshless_material": per_kind["meshless"][0] if "meshless" in per_kind else None,
                          "contact": {"mu": CONTACT_MU, "speed": CONTACT_SPEED, "young": CONTACT_YOUNG,
                                      "cells": len(contact_design(quick))}},
               "counts": counts, "rows": rows, "plots": plots, "seconds": time.perf_counter() - t0}

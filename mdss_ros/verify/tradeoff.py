@@ -3,8 +3,10 @@
 A sweep over the knobs a user turns, one knob at a time around the scene's own model
 configuration plus a few combinations (`sweep_variants`): modes per domain, cubature
 (exact, then several sample counts, interface weights), domain count, dt, one-step vs
-two-step, element vs spring coupling, Newton iterations, and the full-space model with
-one Newton iteration per step (what a user would run instead).
+two-step, element vs spring coupling, Newton iterations, and the other model kinds with
+one Newton iteration per step on the same mesh and dt (what a user would run instead): the
+full-space model, and the meshless model (docs/method.md §19; its own settings, the
+scene's model.meshless, default 16 neighbours; the reduced keys are ignored).
 
 Every configuration plays the scene's timeline for `horizon` seconds and is compared
 with the ground truth on the same inputs: the full-space model (`model.kind: full`, same
@@ -127,9 +129,11 @@ def sweep_variants(model, which="sweep"):
     exact_cub = {"model.cubature": {"samples": 0, "interface": "exact"}}
     full = ("full space, 1 Newton iteration", "kind",
             {"model.kind": "full", "model.integrator.newton_iterations": 1})
+    meshless = ("meshless, 1 Newton iteration", "kind",
+                {"model.kind": "meshless", "model.integrator.newton_iterations": 1})
     out = [("scene", "scene", {"model.kind": "reduced"})]
     if which == "quick":
-        out += [full,
+        out += [full, meshless,
                 (f"r = {max(2, r // 2)}", "modes", {"model.modes": max(2, r // 2)}),
                 ("exact cubature", "cubature", exact_cub),
                 ("two-step", "scheme", {"model.integrator.scheme": "two_step"})]
@@ -161,7 +165,7 @@ def sweep_variants(model, which="sweep"):
     out.append(("spring coupling", "coupling", {"model.coupling": {"kind": "spring"},
                                                 "model.cubature.interface": "exact"}))
     out.append(("3 Newton iterations", "newton", {"model.integrator.newton_iterations": 3}))
-    out.append(full)
+    out += [full, meshless]
     # Combinations: the cheap end, the accurate end, and the single-domain fast path.
     combos = [(f"1 domain, r = {2 * r}", {"model.domains": {"count": 1}, "model.modes": 2 * r,
                                          "model.cubature.interface": "exact"}),
