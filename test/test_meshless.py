@@ -261,6 +261,7 @@ def _static_sag(L, cell, E):
     return len(body.vertices), -(x[tip, 2] - body.vertices[tip, 2]).mean()
 
 
+@pytest.mark.claims
 def test_cantilever_static_sag_against_the_closed_form():
     """0.5 x 0.1 x 0.1 m beam, cell 0.025 (525 nodes), E = 1e8 Pa (small strain), the
     defaults (16 neighbours, support 2 x mean distance, k_v = 0.1 mu, consistent

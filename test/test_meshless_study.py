@@ -1,10 +1,12 @@
 """`mdss verify meshless` (verify/meshless_study.py) at its smallest size: one row of each
 model on the 0.05 m beam, and the equal-error comparison it reports."""
 import numpy as np
+import pytest
 
 from mdss_ros.verify.meshless_study import MESHLESS, equal_error_comparison, run_row
 
 
+@pytest.mark.claims
 def test_meshless_rows_measure_errors_cost_and_hourglass_modes():
     cfg = dict(MESHLESS, timing_steps=2)
     rows = [run_row(v, 0.05, cfg, log=lambda *_: None) for v in ("full", "meshless")]

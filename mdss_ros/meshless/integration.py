@@ -147,7 +147,6 @@ def stabilisation_matrices(X, stencil, c, weights, V, mu, gamma):
     for gamma (dimensionless) and shear modulus mu (Pa); weights (n, k) the kernel w_ij."""
     Xij = X[stencil[:, 1:]] - X[stencil[:, :1]]
     wn = weights / weights.sum(axis=1, keepdims=True)
-    d2 = np.einsum("njd,njd->nj", Xij, Xij)
-    omega = np.divide(wn, d2, out=np.zeros_like(wn), where=wn > 0)  # (n, k); 0 in padded slots
+    omega = wn / np.einsum("njd,njd->nj", Xij, Xij)              # (n, k)
     R = fit_residual_operator(X, stencil, c)
     return (gamma * mu * V)[:, None, None] * np.einsum("nja,nj,njb->nab", R, omega, R)

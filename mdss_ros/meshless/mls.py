@@ -69,13 +69,11 @@ class GradientOperator:
 
 def moments(X, nbr, h):
     """(X_ij (n, k, 3), w_ij (n, k), A_i (n, 3, 3)) of nodes X (n, 3), neighbours nbr (n, k)
-    and support radii h (n,); a padded slot (nbr[i, j] == i) has weight 0."""
+    and support radii h (n,)."""
     X = np.asarray(X, dtype=np.float64)
-    n = len(nbr)
-    Xij = X[nbr] - X[:, None, :]                                   # (n, k, 3); 0 in a padded slot
+    Xij = X[nbr] - X[:, None, :]                                   # (n, k, 3)
     r = np.linalg.norm(Xij, axis=2) / h[:, None]
     w = kernel(r)                                                  # (n, k)
-    w[nbr == np.arange(n)[:, None]] = 0.0                          # padding (neighbourhoods.grow)
     return Xij, w, np.einsum("nk,nka,nkb->nab", w, Xij, Xij, optimize=True)
 
 

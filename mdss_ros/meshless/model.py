@@ -112,8 +112,9 @@ class MeshlessModel(VertexState):
         self.integration_residual = self.build.integration_residual
         if self.build.ill_conditioned:
             warnings.warn(f"meshless model: {self.build.ill_conditioned} nodes keep an ill-conditioned moment matrix "
-                          f"(condition > {COND_LIMIT:g}) after choosing their neighbourhoods over the octants; the body is thinner "
-                          f"than its node spacing there (refine the mesh across it); see --explain")
+                          f"(condition > {COND_LIMIT:g}) after choosing their neighbourhoods over the octants: their nodes are "
+                          f"nearly coplanar there (a part thinner than the node spacing, or cells far longer one way "
+                          f"than another); refine the mesh across it; see --explain")
         self.vertex_mass = self.force_model.vertex_mass
         newton = NewtonSettings(max_iterations=integrator["newton_iterations"], tolerance=integrator["tolerance"],
                                 line_search=integrator["line_search"], projection=integrator["projection"],
@@ -141,8 +142,8 @@ class MeshlessModel(VertexState):
         b = self.build
         cond = (f"{b.grown} nodes with ill-conditioned moment matrices (condition > {COND_LIMIT:g}: nearly "
                 f"coplanar neighbours) got neighbours chosen over the octants round them"
-                + (f", {b.ill_conditioned} stayed ill-conditioned (the body is thinner than its node spacing "
-                   f"there: refine the mesh across it)" if b.ill_conditioned else "")
+                + (f", {b.ill_conditioned} stayed ill-conditioned (nearly coplanar nodes: a thin part or "
+                   f"strongly anisotropic cells; refine the mesh across it)" if b.ill_conditioned else "")
                 + (f", {self.op.floored} moment matrices floored" if self.op.floored else ""))
         integ = ("consistent nodal integration (integration constraint met to "
                  f"{b.integration_residual:.1e})" if cfg["integration"] == "consistent" else
