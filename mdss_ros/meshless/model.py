@@ -1,14 +1,19 @@
 """MeshlessModel (`model.kind: meshless`): [HZ]'s MLS meshless model with nodal integration
 (docs/method.md §19).
 
-Nodes are the body's tet-mesh vertices X (n, 3); the tets serve only to find the mesh
-volume (and the guard's inversion count), the surface output is the surface vertices,
-which are nodes. Per node i:
+Nodes are the body's tet-mesh vertices X (n, 3); the tets serve only for the nodal
+volumes, the surface (the integration constraint's boundary vectors) and the guard's
+inversion count. The surface output is the surface vertices, which are nodes: the fit at
+node i is centred on x_i, so the MLS interpolant there is the node's own position. Per
+node i (build_forces):
 
-    rbar_i, h_i                   neighbourhoods.py (k nearest, support radius)
-    V_i = s rbar_i^3,  s = V_mesh / sum_j rbar_j^3         support volumes ([HZ] eq. 2)
+    rbar_i, h_i                   neighbourhoods.py (k nearest, support radius; octants
+                                  where the moment matrix is ill-conditioned)
+    V_i                           the tet mesh's vertex volume (volumes: mesh), or
+                                  s rbar_i^3 scaled to V_mesh ([HZ] eq. 2, volumes: support)
     m_i = rho V_i                 so sum m_i = rho V_mesh exactly
-    F_i, E = sum_i V_i psi(F_i)   mls.py, forces.py
+    c_i                           mls.py, corrected by integration.py (consistent)
+    F_i, E = sum_i V_i psi(F_i) + E_hg    forces.py, kernels.py, integration.py
 
 State x, v (n, 3). Time integration:
     implicit (default): backward Euler with Newton on the analytic stiffness, the same
@@ -44,8 +49,9 @@ GROWTH_ROUNDS = 3
 
 @dataclass(frozen=True)
 class Build:
-    """What build_forces found: the neighbourhoods, how many nodes needed theirs chosen again over the octants, how
-    many stayed ill-conditioned after that, and the integration constraint's residual."""
+    """What build_forces found: the neighbourhoods, how many nodes had theirs chosen again
+    over the octants, how many stayed ill-conditioned after that, and the integration
+    constraint's residual (None with integration: nodal)."""
     neighbourhoods: object
     grown: int
     ill_conditioned: int
@@ -149,8 +155,7 @@ class MeshlessModel(VertexState):
                  f"{b.integration_residual:.1e})" if cfg["integration"] == "consistent" else
                  "raw nodal integration (no integration-constraint correction)")
         return [f"meshless model ([HZ] MLS, docs/method.md §19): {len(self.x)} nodes "
-                f"(the mesh vertices), {self.n_dofs} DOFs, {cfg['neighbours']} neighbours each (stencils "
-                f"{nb.k} wide), support radius {cfg['support_scale']:g} x mean neighbour distance "
+                f"(the mesh vertices), {self.n_dofs} DOFs, {nb.k} neighbours each, support radius {cfg['support_scale']:g} x mean neighbour distance "
                 f"({nb.h.min():.3g} to {nb.h.max():.3g} m); {cond}",
                 f"  {integ}; fit-residual stabilisation {cfg['stabilisation']:g} mu; integration weights "
                 f"{'the tet mesh vertex volumes' if cfg['volumes'] == 'mesh' else '[HZ] eq. 2 support volumes'}; "
