@@ -45,6 +45,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from mdss_ros.ros import convert  # noqa: E402
+from mdss_ros.record.ros_messages import cdr_bytes  # noqa: E402
 
 POINT_FORCE_DTYPE = np.dtype([(f, "<f4") for f in ("x", "y", "z", "fx", "fy", "fz", "duration")])
 
@@ -83,7 +84,7 @@ class InputPublisher(Node):
 
     def wrench(self, handle, force, torque=(0, 0, 0), stamp=0.0):
         msg = convert.wrench_stamped(stamp, handle, list(force) + list(torque))
-        self._pub("wrench", WrenchStamped).publish(msg)
+        self._pub("wrench", WrenchStamped).publish(cdr_bytes(msg))     # the package's messages are rosbags'
 
     def point_forces(self, points, forces, durations, stamp=0.0, frame_id=""):
         rec = np.zeros(len(points), dtype=POINT_FORCE_DTYPE)
@@ -92,14 +93,11 @@ class InputPublisher(Node):
             rec[k], rec["f" + k] = p[:, i], f[:, i]
         rec["duration"] = durations
         from sensor_msgs.msg import PointCloud2
-        self._pub("point_forces", PointCloud2).publish(convert.cloud(stamp, frame_id, rec))
+        self._pub("point_forces", PointCloud2).publish(cdr_bytes(convert.cloud(stamp, frame_id, rec)))
 
     def collider_pose(self, name, position, orientation=(0, 0, 0, 1), stamp=0.0, frame_id=""):
-        msg = PoseStamped(header=convert.header(stamp, frame_id))
-        msg.pose.position = convert.point(position)
-        o = msg.pose.orientation
-        o.x, o.y, o.z, o.w = (float(v) for v in orientation)
-        self._pub(f"colliders/{name}/pose", PoseStamped).publish(msg)
+        msg = convert.pose_stamped(stamp, frame_id, position, orientation)
+        self._pub(f"colliders/{name}/pose", PoseStamped).publish(cdr_bytes(msg))
 
     def _call(self, srv_type, name, timeout):
         """Call the node's service ~/name with an empty request; its response (TimeoutError

@@ -74,7 +74,7 @@ def cmd_run(args):
     steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))
     if rec is not None:
         rec.start(sim)
-        player = rec
+        player = None
     else:
         player = TimelinePlayer(sim.scene["timeline"])
     step_ms = []
@@ -87,16 +87,23 @@ def cmd_run(args):
                       f"finishing the recording")
                 steps = k
                 break
-            for ev in player.apply_due(sim):
-                print(f"  t = {sim.time:7.3f} s  input {ev['topic']}: "
+            t_now = sim.time
+            if rec is not None:
+                # the node's driver: inputs as messages, the guarded step, the outputs recorded
+                events, ok = rec.advance()
+            else:
+                events = player.apply_due(sim)
+                sim.step()
+                ok = True
+            for ev in events:
+                print(f"  t = {t_now:7.3f} s  input {ev['topic']}: "
                       f"{ {k2: v for k2, v in ev.items() if k2 not in ('t', 'topic')} }")
-            sim.step()
+            if not ok:
+                continue                   # reported by the driver, which reset to t = 0
             step_ms.append(sim.stats()["step_ms"])
             x = sim.vertex_positions()
             if not np.all(np.isfinite(x)):
                 raise SystemExit(f"mdss run: non-finite positions at step {k + 1} (t = {sim.time:.4f} s)")
-            if rec is not None:
-                rec.after_step(k, step_ms[-1])
             if (k + 1) % report_every == 0 or k + 1 == steps:
                 disp = np.linalg.norm(x - rest, axis=1).max()
                 e = sim.energy()

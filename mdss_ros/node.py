@@ -65,6 +65,7 @@ mdss_ros.ros.convert), and decides *when*:
 import math
 import signal
 import sys
+import threading
 import time
 from collections import deque
 
@@ -82,15 +83,14 @@ from geometry_msgs.msg import PoseArray, PoseStamped, TransformStamped, WrenchSt
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import PointCloud2
 from shape_msgs.msg import Mesh
-from std_msgs.msg import Header
 from std_srvs.srv import Empty, Trigger
 from visualization_msgs.msg import Marker
 
 from .errors import MdssError
-from .record.ros_messages import Topics
+from .record.ros_messages import OutputRates, Topics, domain_names
 from .ros import convert
-from .ros import validate
-from .ros.validate import InputRejected, Limits
+from .ros.driver import DEFAULT_QUEUE_LIMIT, Driver
+from .ros.validate import Limits
 from .scene import load_scene, read_yaml, resolve_scene_path, scene_search_path
 from .budget import build_simulator
 
@@ -127,6 +127,8 @@ PARAMETERS = {
     "max_input_age": (1.0, "reject inputs stamped more than this many s before the sim time", True),
     "max_input_lead": (60.0, "reject inputs stamped more than this many s after the sim time", True),
     "max_point_forces": (1000, "reject ~/point_forces clouds with more points", True),
+    "input_queue_limit": (DEFAULT_QUEUE_LIMIT, "inputs waiting for their step at most; one more is dropped and "
+                                               "counted (/diagnostics inputs_dropped)", False),
     "mcap_path": ("", "MCAP recording (a .mcap file, or a rosbag2 folder): every input applied and "
                       "output published, log time = sim time; '' : off", False),
     "rerun_mode": ("off", "rerun logging: off, file (.rrd at rerun_path), spawn (a viewer), serve (gRPC + "
@@ -140,7 +142,7 @@ _RERUN_MODES = ("off", "file", "spawn", "serve")
 CLOCK_MODES = ("source", "follow", "lockstep")
 CLOCK_EPS_S = 1e-8          # follow: a step fits before master time T if it ends at or before T + this
 FOLLOW_LAG_WARN_S = 0.25    # follow: /diagnostics warns when the sim time lags the master by more
-_FORCE_INPUTS = ("wrench", "point_forces")
+INPUT_DEPTH = 1000          # DDS history per input topic between two subscription callbacks
 
 
 class StartupError(MdssError):
@@ -266,14 +268,6 @@ class ExternalClock:
         return self.master - sim_time
 
 
-class _Input:
-    __slots__ = ("due", "seq", "kind", "apply", "topic", "msg")
-
-    def __init__(self, due, seq, kind, apply, topic=None, msg=None):
-        self.due, self.seq, self.kind, self.apply = due, seq, kind, apply
-        self.topic, self.msg = topic, msg     # recorded when applied
-
-
 class MdssNode(Node):
     """The simulation node. Builds the simulator (the slow part) in the constructor."""
 
@@ -306,47 +300,40 @@ class MdssNode(Node):
                 "along the shortest way, and it is not swept through the body when posed; /diagnostics "
                 "colliders_inside_at_load lists it")
         st = self.sim.stats()
-        self.surface_ids = np.asarray(self.sim.surface_vertex_ids())
-        self.triangles = np.asarray(self.sim.surface_triangles())
         log.info(f"model built in {time.perf_counter() - t0:.2f} s: {st['vertices']} vertices, "
                  f"{st['tets']} tets, {st['dofs']} DOFs, {st['domains']} domains, surface "
-                 f"{len(self.surface_ids)} vertices / {len(self.triangles)} triangles")
+                 f"{len(self.sim.surface_vertex_ids())} vertices / {len(self.sim.surface_triangles())} triangles")
 
-        self.handles = set(scene["handles"])
         self.colliders = list(scene["colliders"])
         self._declare_friction_parameters()
-        self.domain_names = self._domain_names()
-        self.surface_domain = np.asarray(self.sim.model.vertex_domain)[self.surface_ids]
-        self._points = convert.SurfacePoints(self.surface_domain)
-        self._mesh = convert.MeshEncoder(self.triangles)
-        self._marker = convert.MarkerEncoder(self.triangles, self.surface_domain)
-        self._limits = self._read_limits()
 
-        # Bookkeeping (all touched only from callbacks of this node's executor).
+        # Bookkeeping. The step, the timers and the services run in the node's default
+        # (mutually exclusive) callback group; the input subscriptions in their own group,
+        # so a second executor thread takes messages off the wire while a step computes
+        # (the driver's queue is the only state they share, behind its lock).
         self._paused = bool(self._p("start_paused"))
         mode = self._p("clock_mode")
         self._master = None if mode == "source" else ExternalClock(mode)   # None: the node is the clock
-        self._queue = []
-        self._seq = 0
-        self._held = {}                       # handle -> sim time its wrench was last set
-        self._rejected = dict.fromkeys(validate.KINDS, 0)
         self._warned = {}
-        self._counts = dict.fromkeys(("received", "applied", "late"), 0)
-        self._inside_poses, self._inside_last = 0, ""    # collider poses inside the body (applied)
-        self._stability, self._failures, self._last_failure = "ok", 0, ""
-        self._guard_seen = 0                  # guard recoveries already reported
-        self._failing = False
-        self._step_ms, self._cycle_ms = deque(maxlen=100000), deque(maxlen=100000)
+        self._cycle_ms = deque(maxlen=100000)
+        self._dropped_seen = 0                # inputs_dropped at the last /diagnostics
         self._window = (time.monotonic(), self.sim.time)
         self._traps = {}
+        self._inputs_thread, self._inputs_stop = None, threading.Event()
         self._recorder, self._rerun, self._closed = None, None, False
-        self._log_offset = 0.0                # sim time run before the last reset (log time goes on)
         self._topics = Topics(self.get_fully_qualified_name())
         self._open_recording()
-
         self._make_interfaces()
-        self._publish_topology()
-        self._publish_state(initial=True)
+        rates = OutputRates(**{k: self._p(f"{k}_publish_rate") for k in ("points", "mesh", "marker", "pose")},
+                            diagnostics=0.0)         # /diagnostics: the node's wall-clock timer
+        self.driver = Driver(self.sim, self._topics, self._p("world_frame"), rates, self._emit,
+                             limits=self._read_limits(), wrench_timeout_s=self._p("wrench_timeout_s"),
+                             report=self._report, rerun=self._rerun,
+                             queue_limit=self._p("input_queue_limit"),
+                             on_collider_inside=self._collider_inside)
+        self.domain_names = self.driver.outputs.domain_names
+        self.surface_ids = self.driver.outputs.surface_ids
+        self.driver.start()
         pace = (f"at real_time_factor {self._p('real_time_factor'):g}" if self._master is None else
                 f"in clock_mode {self._master.mode} ("
                 + ("stepping to follow /clock" if self._master.mode == "follow" else
@@ -399,8 +386,8 @@ class MdssNode(Node):
                 return str(err)
         elif type(value) is not type(default):
             return f"{name} must be a {type(default).__name__}, got {value!r}"
-        if name == "max_point_forces" and value < 1:
-            return f"max_point_forces must be >= 1, got {value}"
+        if name in ("max_point_forces", "input_queue_limit") and value < 1:
+            return f"{name} must be >= 1, got {value}"
         if name == "world_frame" and not value:
             return "world_frame must not be empty"
         if name == "rerun_mode" and value not in _RERUN_MODES:
@@ -498,7 +485,14 @@ class MdssNode(Node):
                 self._set_friction(collider)
         if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
                     "max_point_forces"}:
-            self._limits = self._read_limits()
+            self.driver.limits = self._read_limits()
+        if "wrench_timeout_s" in names:
+            self.driver.wrench_timeout_s = self._p("wrench_timeout_s")
+        if "world_frame" in names:
+            self.driver.world_frame = self.driver.outputs.frame = self._p("world_frame")
+        for rate in _RATES:
+            if rate in names:
+                setattr(self.driver.outputs.rates, rate[:-len("_publish_rate")], self._p(rate))
         if "real_time_factor" in names and self._step_timer is not None:   # follow, lockstep: ignored
             self._step_timer.timer_period_ns = self._step_period_ns()
             if not self._paused:
@@ -532,13 +526,6 @@ class MdssNode(Node):
         except MdssError as err:
             raise StartupError(str(err)) from err
 
-    def _domain_names(self):
-        n = len(self.sim.domain_poses())
-        names = list(self.sim.model.domain_names())
-        if len(names) != n:
-            names = ["body"] if n == 1 else [f"domain_{i}" for i in range(n)]
-        return names
-
     # ------------------------------------------------------------------ interfaces
     def _collider_topic(self, name, leaf):
         return self.resolve_topic_name(f"~/colliders/{name}/{leaf}")
@@ -549,21 +536,27 @@ class MdssNode(Node):
                 self._collider_topic(c, "pose")
             except Exception as err:
                 raise StartupError(f"collider name {c!r} cannot be part of a topic name: {err}") from err
-        self.pub_topology = self.create_publisher(Mesh, "~/surface/topology", _qos(1, latched=True))
-        self.pub_points = self.create_publisher(PointCloud2, "~/surface/points", _qos(10))
-        self.pub_mesh = self.create_publisher(Mesh, "~/surface/mesh", _qos(2))
-        self.pub_marker = self.create_publisher(Marker, "~/surface/marker", _qos(2))
-        self.pub_poses = self.create_publisher(PoseArray, "~/domain_poses", _qos(10))
-        self.pub_transforms = self.create_publisher(TransformStamped, "~/domain_transforms",
-                                                    _qos(max(10, 2 * len(self.domain_names))))
-        self.pub_contacts = self.create_publisher(PointCloud2, "~/contacts", _qos(10))
-        self.pub_collider_wrench = {c: self.create_publisher(WrenchStamped, f"~/colliders/{c}/wrench", _qos(10))
-                                    for c in self.colliders}
+        tp = self._topics
+        pub = self.create_publisher
+        n_domains = len(self.sim.domain_poses())
+        # Every output leaves as the CDR bytes the driver built (and records): topic -> publisher.
+        self._output_pubs = {
+            tp.topology: pub(Mesh, "~/surface/topology", _qos(1, latched=True)),
+            tp.points: pub(PointCloud2, "~/surface/points", _qos(10)),
+            tp.mesh: pub(Mesh, "~/surface/mesh", _qos(2)),
+            tp.marker: pub(Marker, "~/surface/marker", _qos(2)),
+            tp.domain_poses: pub(PoseArray, "~/domain_poses", _qos(10)),
+            tp.domain_transforms: pub(TransformStamped, "~/domain_transforms", _qos(max(10, 2 * n_domains))),
+            tp.contacts: pub(PointCloud2, "~/contacts", _qos(10)),
+            tp.diagnostics: pub(DiagnosticArray, "/diagnostics", _qos(10)),
+        }
+        for c in self.colliders:
+            self._output_pubs[tp.collider_wrench(c)] = pub(WrenchStamped, f"~/colliders/{c}/wrench", _qos(10))
+            self._output_pubs[tp.collider_contacts(c)] = pub(PointCloud2, f"~/colliders/{c}/contacts", _qos(10))
         # latched: a late subscriber learns the sim time even while physics is paused
         # (follow, lockstep: the master owns /clock; the node only records its sim time)
-        self.pub_clock = (self.create_publisher(ClockMsg, "/clock", _qos(1, latched=True))
-                          if self._master is None else None)
-        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", _qos(10))
+        if self._master is None:
+            self._output_pubs[tp.clock] = pub(ClockMsg, "/clock", _qos(1, latched=True))
         # /tf (tf2_msgs/TFMessage, child frames <node name>/<domain name>) as RViz and
         # Foxglove expect it. The pip ROS wheels have no tf2_msgs: launch_scripts/
         # build_tf2_msgs.sh builds it into the venv (the bootstrap runs it); without it the
@@ -571,16 +564,26 @@ class MdssNode(Node):
         try:
             from tf2_msgs.msg import TFMessage
         except ImportError:
-            self._tf_type, self.pub_tf = None, None
+            self.pub_tf = None
         else:
-            self._tf_type = TFMessage
-            self.pub_tf = self.create_publisher(TFMessage, "/tf", _qos(100))
+            self.pub_tf = self._output_pubs[tp.tf] = pub(TFMessage, "/tf", _qos(100))
 
-        self.create_subscription(WrenchStamped, "~/wrench", self._on_wrench, _qos(50))
-        self.create_subscription(PointCloud2, "~/point_forces", self._on_point_forces, _qos(50))
+        # Inputs arrive as raw CDR bytes (the driver decodes and checks them, as a replay
+        # does) on a second, internal node "<name>_inputs" that its own thread spins, so
+        # they are taken off the wire while a step computes and wait in the driver's
+        # bounded, counted queue instead of DDS's. (A callback group of this node under a
+        # MultiThreadedExecutor was tried: rclpy drops a guard condition triggered while
+        # its group is busy, so the follow mode's steps stalled until the next tick.) The
+        # DDS history still holds INPUT_DEPTH messages per topic between two callbacks;
+        # past it DDS would overwrite them uncounted (measured before this: 71-message
+        # bursts lost 32 of 142 at depth 50 while the subscriptions waited for the step).
+        self._inputs_node = Node(f"{self.get_name()}_inputs", namespace=self.get_namespace(), context=self.context,
+                                 use_global_arguments=False, start_parameter_services=False,
+                                 enable_rosout=False)
+        self._input_subscription(WrenchStamped, tp.wrench)
+        self._input_subscription(PointCloud2, tp.point_forces)
         for c in self.colliders:
-            self.create_subscription(PoseStamped, f"~/colliders/{c}/pose",
-                                     lambda msg, c=c: self._on_collider_pose(c, msg), _qos(50))
+            self._input_subscription(PoseStamped, tp.collider_pose(c))
 
         self.create_service(Empty, "~/pause_physics", self._srv_pause)
         self.create_service(Empty, "~/unpause_physics", self._srv_unpause)
@@ -589,10 +592,9 @@ class MdssNode(Node):
         self.create_service(Trigger, "~/clear_forces", self._srv_clear_forces)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        # The timer only triggers a guard condition whose callback steps: rclpy's executor
-        # runs ready timers before subscriptions, guard conditions after them, so inputs
-        # that arrived during a step are taken before the next one even when the timer is
-        # always ready (a model slower than real time, or real_time_factor <= 0).
+        # The timer only triggers a guard condition whose callback steps, so a step timer
+        # that is always ready (a model slower than real time, or real_time_factor <= 0)
+        # still lets the services and the clock subscription of the same group run.
         self._step_guard = self.create_guard_condition(self._on_step_guard)
         if self._master is None:
             self._step_timer = self.create_timer(self._step_period_ns() * 1e-9, self._on_step_timer, clock=steady)
@@ -614,75 +616,66 @@ class MdssNode(Node):
                                                 durability=DurabilityPolicy.VOLATILE))
         self._diag_timer = self.create_timer(1.0 / self._p("diagnostics_rate"), self._on_diag_timer, clock=steady)
 
+    def _input_subscription(self, msg_type, topic):
+        return self._inputs_node.create_subscription(msg_type, topic, lambda data, t=topic: self.driver.submit(t, data),
+                                                     _qos(INPUT_DEPTH), raw=True)
+
+    def start_inputs(self):
+        """Start the thread that spins the inputs node (main() does; in-process users that
+        call submit() themselves need not)."""
+        if self._inputs_thread is None:
+            self._inputs_executor = SingleThreadedExecutor(context=self.context)
+            self._inputs_executor.add_node(self._inputs_node)
+            self._inputs_thread = threading.Thread(target=self._spin_inputs, name="mdss inputs", daemon=True)
+            self._inputs_thread.start()
+
+    def _spin_inputs(self):
+        while not self._inputs_stop.is_set() and self.context.ok():
+            try:
+                self._inputs_executor.spin_once(timeout_sec=0.1)
+            except ExternalShutdownException:
+                break
+            except Exception:  # noqa: BLE001 - the node never stops taking inputs on one message
+                import traceback
+                self.get_logger().error(f"input callback failed (the node goes on):\n{traceback.format_exc()}")
+
+    def stop_inputs(self):
+        self._inputs_stop.set()
+        thread, self._inputs_thread = self._inputs_thread, None
+        if thread is not None:
+            thread.join(timeout=5.0)
+            self._inputs_executor.shutdown(timeout_sec=1.0)
+
     def _step_period_ns(self):
         rtf = self._p("real_time_factor")
         return int(round(1e9 * self.sim.dt / rtf)) if rtf > 0 else 0
 
     # ------------------------------------------------------------------ inputs
-    def _reject(self, err, source):
-        self._rejected[err.kind] += 1
-        now = time.monotonic()
-        last, suppressed = self._warned.get(err.kind, (-math.inf, 0))
-        if now - last >= WARN_PERIOD_S:
-            more = f" (and {suppressed} more '{err.kind}' rejections since the last warning)" if suppressed else ""
-            self.get_logger().warn(f"rejected {source}: {err.reason}{more}")
-            self._warned[err.kind] = (now, 0)
+    def submit(self, topic, msg):
+        """Hand an input to the driver as a subscription does (msg: CDR bytes or a message;
+        topic: e.g. "~/wrench"). For tests and in-process use."""
+        return self.driver.submit(self.resolve_topic_name(topic), msg)
+
+    def _report(self, level, text, key=None):
+        """The driver's messages to a person: rejections and warnings with a key are logged at
+        most once per WARN_PERIOD_S per key, with a count of those held back."""
+        log = self.get_logger()
+        if key is not None:
+            now = time.monotonic()
+            last, suppressed = self._warned.get(key, (-math.inf, 0))
+            if now - last < WARN_PERIOD_S:
+                self._warned[key] = (last, suppressed + 1)
+                return
+            if suppressed:
+                text += f" (and {suppressed} more '{key}' since the last warning)"
+            self._warned[key] = (now, 0)
+        # one call site per severity: rclpy's logger refuses a second severity at one call site
+        if level == "info":
+            log.info(text)
+        elif level == "error":
+            log.error(text)
         else:
-            self._warned[err.kind] = (last, suppressed + 1)
-
-    def _enqueue(self, stamp, kind, apply, topic=None, msg=None):
-        due = validate.due_time(stamp, self.sim.time, self._limits)
-        if due is not None and due < self.sim.time - 0.5 * self.sim.dt:
-            self._counts["late"] += 1
-        self._seq += 1
-        self._queue.append(_Input(due, self._seq, kind, apply, topic, msg))
-
-    def _on_wrench(self, msg):
-        self._counts["received"] += 1
-        w = msg.wrench
-        try:
-            handle, force, torque = validate.wrench(
-                msg.header.frame_id, (w.force.x, w.force.y, w.force.z),
-                (w.torque.x, w.torque.y, w.torque.z), self.handles, self._limits)
-            self._enqueue(convert.seconds(msg.header.stamp), "wrench",
-                          lambda: self._apply_wrench(handle, force, torque), self._topics.wrench, msg)
-        except InputRejected as err:
-            self._reject(err, "~/wrench")
-
-    def _apply_wrench(self, handle, force, torque):
-        self.sim.set_wrench(handle, force, torque)
-        if force.any() or torque.any():
-            self._held[handle] = self.sim.time
-        else:
-            self._held.pop(handle, None)
-
-    def _on_point_forces(self, msg):
-        self._counts["received"] += 1
-        try:
-            points, forces, durations = validate.point_forces(msg, self._p("world_frame"), self._limits)
-            self._enqueue(convert.seconds(msg.header.stamp), "point_forces",
-                          lambda: [self.sim.add_point_force(p, f, d) for p, f, d in zip(points, forces, durations)],
-                          self._topics.point_forces, msg)
-        except InputRejected as err:
-            self._reject(err, "~/point_forces")
-
-    def _on_collider_pose(self, name, msg):
-        self._counts["received"] += 1
-        p, o = msg.pose.position, msg.pose.orientation
-        try:
-            validate.frame(msg.header.frame_id, self._p("world_frame"), f"colliders/{name}/pose")
-            pos, quat = validate.pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w), self._limits)
-            self._enqueue(convert.seconds(msg.header.stamp), "collider_pose",
-                          lambda: self._apply_collider_pose(name, pos, quat),
-                          self._topics.collider_pose(name), msg)
-        except InputRejected as err:
-            self._reject(err, f"~/colliders/{name}/pose")
-
-    def _on_unknown_collider(self, name, msg):
-        self._counts["received"] += 1
-        self._reject(InputRejected("unknown_collider", f"the scene has no collider {name!r} "
-                                                       f"(colliders: {', '.join(self.colliders) or 'none'})"),
-                     f"~/colliders/{name}/pose")
+            log.warn(text)
 
     def _trap_unknown_colliders(self):
         """Subscribe to ~/colliders/<name>/pose topics of names the scene lacks, to count them."""
@@ -693,38 +686,20 @@ class MdssNode(Node):
             name = topic[len(prefix):-len("/pose")]
             if name in self.colliders or "/" in name or "geometry_msgs/msg/PoseStamped" not in types:
                 continue
-            self._traps[topic] = self.create_subscription(
-                PoseStamped, topic, lambda msg, n=name: self._on_unknown_collider(n, msg), _qos(50))
+            self._traps[topic] = self._input_subscription(PoseStamped, topic)
             self.get_logger().warn(f"a publisher appeared on {topic}, but the scene has no collider {name!r} "
                                    f"(colliders: {', '.join(self.colliders) or 'none'}); its messages are "
                                    f"counted as rejected_unknown_collider")
 
-    def _apply_due_inputs(self):
-        t_limit = self.sim.time + 0.5 * self.sim.dt
-        due = [i for i in self._queue if i.due is None or i.due <= t_limit]
-        if not due:
-            return
-        self._queue = [i for i in self._queue if not (i.due is None or i.due <= t_limit)]
-        due.sort(key=lambda i: (self.sim.time if i.due is None else i.due, i.seq))
-        for item in due:
-            try:
-                item.apply()
-                self._counts["applied"] += 1
-                if item.msg is not None:
-                    self._record(item.topic, item.msg)
-            except (KeyError, ValueError) as err:
-                self._reject(InputRejected("apply_error", f"{item.kind}: {err}"), item.kind)
-
-    def _expire_wrenches(self):
-        timeout = self._p("wrench_timeout_s")
-        if timeout <= 0:
-            return
-        for handle, t_set in list(self._held.items()):
-            if self.sim.time - t_set >= timeout - 1e-9:
-                self.sim.set_wrench(handle)
-                del self._held[handle]
-                self.get_logger().info(f"wrench on {handle!r} cleared: not refreshed for "
-                                       f"wrench_timeout_s = {timeout:g} s")
+    def _collider_inside(self, name, info):
+        """A pose that puts a collider inside the body (Simulator.set_collider_pose): applied,
+        counted by the driver (/diagnostics collider_poses_inside) and warned about at most
+        once per WARN_PERIOD_S, like rejected inputs."""
+        self._report("warn", f"~/colliders/{name}/pose puts the collider {1e3 * info['depth']:.1f} mm inside the "
+                             f"body ({info['vertices']} surface vertices inside it, deepest vertex {info['vertex']}); "
+                             f"applied: it is swept there if it starts the step outside the body, else moved "
+                             f"straight there, and the contact pushes the body out along the shortest way",
+                     key="collider_inside")
 
     # ------------------------------------------------------------------ stepping
     def _on_step_timer(self):
@@ -738,7 +713,7 @@ class MdssNode(Node):
             self.advance()
             return
         # follow, lockstep: one step per callback; the guard is triggered again while more
-        # are due, so inputs (and ticks) that arrive meanwhile are taken between steps.
+        # are due, so ticks and service calls that arrive meanwhile are taken between steps.
         if self._master.steps_due(self.sim.step_count, self.sim.dt) > 0:
             self._master.stepped()
             self.advance()
@@ -759,120 +734,30 @@ class MdssNode(Node):
             self.get_logger().warn(f"/clock jumped back from {previous:.9g} s to {t:.9g} s (sim time "
                                    f"{sim_time:.9g} s): resetting the simulation to t = 0; the node {then} "
                                    f"(jump back {self._master.jumps_back})")
-            self._stability, self._last_failure = "ok", ""
-            self._reset()
+            self._reset("clock")
         self._kick_clock()
 
     def advance(self):
-        """One physics step: due inputs, Simulator.step(), /clock and due outputs."""
+        """One physics step through the driver: due inputs, the step, /clock and due outputs."""
         w0 = time.perf_counter()
-        self._apply_due_inputs()
-        self._expire_wrenches()
-        k = self.sim.step_count
-        s0 = time.perf_counter()
-        try:
-            self.sim.step()
-        except Exception as err:  # a solver failure must not take the node down
-            self._fail(f"the step from t = {self.sim.time:.6g} s raised {type(err).__name__}: {err}")
-            return
-        st = self.sim.stats()
-        if st.get("stability") == "failed":
-            # The guard kept the last good state; nothing diverged is published.
-            self._fail(f"the step to t = {self.sim.time:.6g} s diverged and could not be recovered "
-                       f"({st.get('guard_reason', '')})")
-            return
-        step_ms = 1e3 * (time.perf_counter() - s0)
-        self._step_ms.append(step_ms)
-        self._publish_state(previous_step=k)
-        if self._rerun is not None:
-            self._log_rerun(step_ms)
-        self._cycle_ms.append(1e3 * (time.perf_counter() - w0))
+        if self.driver.advance():
+            self._cycle_ms.append(1e3 * (time.perf_counter() - w0))
 
-    def _due(self, rate_name, previous_step):
-        rate = self._p(rate_name)
-        if rate <= 0:
-            return False
-        if previous_step is None:
-            return True
-        tick = lambda k: math.floor(k * self.sim.dt * rate + 1e-6)  # noqa: E731
-        return tick(self.sim.step_count) > tick(previous_step)
-
-    def _finite(self, what, a):
-        if np.all(np.isfinite(a)):
-            return True
-        self._fail(f"non-finite {what} at t = {self.sim.time:.6g} s")
-        return False
-
-    def _publish_state(self, previous_step=None, initial=False):
-        """/clock and every output due after the step from previous_step (None: all)."""
-        t, frame, tp = self.sim.time, self._p("world_frame"), self._topics
-        if self.pub_clock is not None:
-            self._publish(self.pub_clock, tp.clock, convert.clock(t))
-        else:                      # follow, lockstep: recorded only (replay steps to the last one)
-            self._record(tp.clock, convert.clock(t))
-        surface = [n for n in ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate")
-                   if self._due(n, previous_step)]
-        if surface:
-            x = self.sim.surface_positions()
-            if not self._finite("surface positions", x):
-                return
-            if "points_publish_rate" in surface:
-                self._publish(self.pub_points, tp.points, self._points.message(t, frame, x))
-            if "mesh_publish_rate" in surface:
-                self._publish(self.pub_mesh, tp.mesh, self._mesh.encode(x))
-            if "marker_publish_rate" in surface:
-                self._publish(self.pub_marker, tp.marker, self._marker.encode(t, frame, x))
-        if self._due("pose_publish_rate", previous_step):
-            poses = self.sim.domain_poses()
-            wrenches = {c: self.sim.collider_wrench(c) for c in self.colliders}
-            if not self._finite("domain poses", poses) or not all(
-                    self._finite(f"wrench on collider {c!r}", w) for c, w in wrenches.items()):
-                return
-            self._publish(self.pub_poses, tp.domain_poses, convert.pose_array(t, frame, poses))
-            transforms = convert.domain_transforms(t, frame, self.domain_names, poses)
-            for msg in transforms:
-                self._publish(self.pub_transforms, tp.domain_transforms, msg)
-            tf = convert.domain_transforms(t, frame, self.domain_names, poses, prefix=tp.tf_prefix)
-            if self.pub_tf is not None:
-                self.pub_tf.publish(self._tf_type(transforms=tf))
-            if self._recorder is not None:
-                self._recorder.write_tf(tf, self._log_time())
-            for c, w in wrenches.items():
-                self._publish(self.pub_collider_wrench[c], tp.collider_wrench(c), convert.wrench_stamped(t, frame, w))
-        contacts_of = getattr(self.sim, "contacts", None)
-        if callable(contacts_of):
-            contacts = np.asarray(contacts_of(), dtype=np.float64)
-            if len(contacts) and self._finite("contacts", contacts):
-                self._publish(self.pub_contacts, tp.contacts, convert.contacts_cloud(t, frame, contacts))
-
-    def _publish_topology(self):
-        rest = np.asarray(self.sim.rest_positions())[self.surface_ids]
-        self._publish(self.pub_topology, self._topics.topology, convert.topology_mesh_bytes(rest, self.triangles))
-
-    def _fail(self, what):
-        self._stability, self._failures = "failed", self._failures + 1
-        self._last_failure = what
-        self.get_logger().error(f"{what}: nothing of it is published; resetting the simulation to t = 0 "
-                                f"(failure {self._failures})")
-        if not self._failing:
-            self._failing = True
-            try:
-                self._reset()
-            finally:
-                self._failing = False
-
-    def _reset(self):
-        # Recorded as an input, so a replay resets where this run did; log time keeps
-        # counting from here (sim time restarts at 0).
-        self._record(self._topics.reset, Header(stamp=convert.stamp(self.sim.time), frame_id=""))
-        self._log_offset += self.sim.time
-        self.sim.reset()
-        self._guard_seen = 0
-        self._queue.clear()
-        self._held.clear()
+    def _reset(self, reason):
+        self.driver.reset(reason)
         self._window = (time.monotonic(), self.sim.time)
-        if self.sim.step_count == 0 and np.all(np.isfinite(self.sim.surface_positions())):
-            self._publish_state(initial=True)
+
+    def _emit(self, out, log_time_ns, is_input):
+        """The driver's sink: outputs are published (bytes as built) and recorded; inputs,
+        when applied, recorded."""
+        if not is_input:
+            pub = self._output_pubs.get(out.topic)
+            if pub is not None:
+                pub.publish(out.data)
+        rec = self._recorder
+        if rec is not None and rec.ok:
+            rec.write(out.topic, out.data, log_time_ns, type_name=out.type_name,
+                      qos=self._topics.qos_of(out.topic), publish_time_ns=time.time_ns())
 
     # ------------------------------------------------------------------ recording
     def _open_recording(self):
@@ -898,7 +783,7 @@ class MdssNode(Node):
             rate = self._p("points_publish_rate")
             try:
                 self._rerun = RerunLogger(self.sim, mode=mode, path=rrd, rate=rate if rate > 0 else None,
-                                          domain_names=self.domain_names)
+                                          domain_names=domain_names(self.sim))
                 where = rrd if mode == "file" else (self._rerun.url or "a spawned viewer")
                 log.info(f"rerun logging ({mode}) to {where}")
             except RerunLogError as err:
@@ -920,65 +805,15 @@ class MdssNode(Node):
                             recorder="mdss_ros.node",
                             diagnostics_clock="wall time (the node's /diagnostics)",
                             wrench_timeout_s=repr(self._p("wrench_timeout_s")),
-                            limits_json=json.dumps(self._limits.__dict__),
+                            limits_json=json.dumps(self._read_limits().__dict__),
                             real_time_factor=repr(self._p("real_time_factor")),
                             clock_mode=self._p("clock_mode"))
 
-    def _log_time(self):
-        return int(round((self._log_offset + self.sim.time) * 1e9))
-
-    def _record(self, topic, msg, type_name=None):
-        rec = self._recorder
-        if rec is not None and rec.ok:
-            rec.write(topic, msg, self._log_time(), type_name=type_name, qos=self._topics.qos_of(topic),
-                      publish_time_ns=time.time_ns())
-
-    def _publish(self, pub, topic, msg):
-        """Publish msg (an object, or CDR bytes of the publisher's type) and record it."""
-        pub.publish(msg)
-        if self._recorder is not None:
-            self._record(topic, msg, type_name=None if not isinstance(msg, (bytes, bytearray)) else
-                         f"{pub.msg_type.__module__.split('.')[0]}/msg/{pub.msg_type.__name__}")
-
-    def _apply_collider_pose(self, name, pos, quat):
-        inside = self.sim.set_collider_pose(name, pos, quat)
-        if inside:
-            self._collider_inside(name, inside)
-        if self._rerun is not None:
-            self._rerun.collider_pose(name, pos, quat)
-
-    def _collider_inside(self, name, info):
-        """A pose that puts a collider inside the body (Simulator.set_collider_pose): applied,
-        counted (/diagnostics collider_poses_inside) and warned about at most once per
-        WARN_PERIOD_S, like rejected inputs."""
-        self._inside_poses += 1
-        self._inside_last = f"{name}: {1e3 * info['depth']:.1f} mm, {info['vertices']} vertices"
-        now = time.monotonic()
-        last, suppressed = self._warned.get("collider_inside", (-math.inf, 0))
-        if now - last >= WARN_PERIOD_S:
-            more = f" (and {suppressed} more such poses since the last warning)" if suppressed else ""
-            self.get_logger().warn(
-                f"~/colliders/{name}/pose puts the collider {1e3 * info['depth']:.1f} mm inside the body "
-                f"({info['vertices']} surface vertices inside it, deepest vertex {info['vertex']}); applied: it is "
-                f"swept there if it starts the step outside the body, else moved straight there, and the "
-                f"contact pushes the body out along the shortest way{more}")
-            self._warned["collider_inside"] = (now, 0)
-        else:
-            self._warned["collider_inside"] = (last, suppressed + 1)
-
-    def _log_rerun(self, step_ms):
-        try:
-            self._rerun.log_step(step_ms)
-        except Exception as err:  # noqa: BLE001 - a viewer gone away must not stop the simulation
-            self.get_logger().error(f"rerun logging stopped: {type(err).__name__}: {err}; the simulation goes on")
-            rerun, self._rerun = self._rerun, None
-            try:
-                rerun.close()
-            except Exception:  # noqa: BLE001
-                pass
-
     def _close_recording(self):
-        rerun, self._rerun = self._rerun, None
+        rerun = self.driver.rerun if hasattr(self, "driver") else self._rerun   # None once it failed
+        self._rerun = None
+        if hasattr(self, "driver"):
+            self.driver.rerun = None
         if rerun is not None:
             try:
                 rerun.close()
@@ -1015,8 +850,7 @@ class MdssNode(Node):
         return response
 
     def _srv_reset(self, request, response):
-        self._stability, self._last_failure = "ok", ""
-        self._reset()
+        self._reset("service")
         self.get_logger().info("simulation reset to t = 0")
         self._kick_clock()                 # follow: catch up from 0 with the master
         return response
@@ -1036,12 +870,7 @@ class MdssNode(Node):
         return response
 
     def _srv_clear_forces(self, request, response):
-        held = sorted(self._held)
-        pending = sum(1 for i in self._queue if i.kind in _FORCE_INPUTS)
-        self.sim.clear_forces()
-        self._held.clear()
-        self._record(self._topics.clear_forces, Header(stamp=convert.stamp(self.sim.time), frame_id=""))
-        self._queue = [i for i in self._queue if i.kind not in _FORCE_INPUTS]
+        held, pending = self.driver.clear_forces()
         response.success = True
         response.message = (f"cleared wrenches on [{', '.join(held)}], all point forces and "
                             f"{pending} pending force inputs at t = {self.sim.time:.6g} s")
@@ -1050,32 +879,23 @@ class MdssNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _on_diag_timer(self):
         self._trap_unknown_colliders()
-        self._publish(self.pub_diag, self._topics.diagnostics, self.diagnostics())
+        from .record.ros_messages import Out, cdr_bytes
+        tp = self._topics
+        self._emit(Out(tp.diagnostics, tp.type_of(tp.diagnostics), cdr_bytes(self.diagnostics()), self.sim.time),
+                   int(round(self.driver.run_time * 1e9)), False)
 
     def diagnostics(self):
+        """The /diagnostics message of the window since the last call (wall-clock rates)."""
         now = time.monotonic()
         wall0, sim0 = self._window
         rtf = 0.0 if self._paused or now <= wall0 else (self.sim.time - sim0) / (now - wall0)
         self._window = (now, self.sim.time)
-        steps, cycles = np.array(self._step_ms), np.array(self._cycle_ms)
-        self._step_ms.clear()
+        steps, cycles = self.driver.take_step_ms(), np.array(self._cycle_ms)
         self._cycle_ms.clear()
-        energy = self.sim.energy()
-        if not all(math.isfinite(v) for v in energy.values()):
-            self._fail("non-finite energy")
-            energy = self.sim.energy()
-        stats = self.sim.stats()
-        recoveries = stats.get("guard_recoveries", 0) + stats.get("guard_degraded", 0)
-        recovered = recoveries > self._guard_seen
-        self._guard_seen = recoveries
-        stability = self._stability if self._stability != "ok" else ("recovered" if recovered else "ok")
         target = self._p("real_time_factor")
-        values = {
-            "state": "paused" if self._paused else "running",
-            "sim_time": self.sim.time,
-            "steps": self.sim.step_count,
-            "physics_dt": self.sim.dt,
-            "clock_mode": self._p("clock_mode"),
+        values = {"state": "paused" if self._paused else "running", "clock_mode": self._p("clock_mode")}
+        values.update(self.driver.values())
+        values.update({
             "step_ms_median": float(np.median(steps)) if len(steps) else 0.0,
             "step_ms_max": float(steps.max()) if len(steps) else 0.0,
             "cycle_ms_median": float(np.median(cycles)) if len(cycles) else 0.0,
@@ -1083,31 +903,8 @@ class MdssNode(Node):
             "steps_in_window": len(steps),
             "real_time_factor": rtf,
             "real_time_factor_target": target,
-            "energy_total": energy["total"],
-            "energy_kinetic": energy["kinetic"],
-            "energy_elastic": energy["elastic"],
-            "stability": stability,
-            "stability_failures": self._failures,
-            "last_failure": self._last_failure,
-            "guard": stats.get("stability", "off"),
-            "guard_recoveries": stats.get("guard_recoveries", 0),
-            "guard_degraded": stats.get("guard_degraded", 0),
-            "guard_substeps_total": stats.get("guard_substeps_total", 0),
-            "guard_untangles": stats.get("guard_untangles", 0),
-            "guard_last_event": stats.get("guard_last_event", ""),
-            "dofs": stats.get("dofs", 0),
-            "domains": len(self.domain_names),
-            "surface_vertices": len(self.surface_ids),
-            "held_wrenches": ",".join(sorted(self._held)),
-            "inputs_received": self._counts["received"],
-            "inputs_applied": self._counts["applied"],
-            "inputs_late": self._counts["late"],
-            "inputs_pending": len(self._queue),
-            "rejected_total": sum(self._rejected.values()),
-        }
-        values.update({f"rejected_{k}": v for k, v in self._rejected.items()})
-        values.update({"collider_poses_inside": self._inside_poses, "collider_inside_last": self._inside_last,
-                       "colliders_inside_at_load": ",".join(sorted(self.sim.colliders_inside_at_load))})
+        })
+        stability, last_failure = values["stability"], values["last_failure"]
         clock, lag = self._master, 0.0
         if clock is not None:
             values.update({"clock_master_time": clock.master, "clock_ticks": clock.ticks,
@@ -1118,31 +915,40 @@ class MdssNode(Node):
             else:
                 values["clock_steps_pending"] = clock.pending
         if stability == "failed":
-            level, message = "error", f"failed: {self._last_failure}"
+            level, message = "error", f"failed: {last_failure}"
         elif stability == "recovered":
-            level, message = "warn", f"recovered: {stats.get('guard_last_event', '')}"
+            level, message = "warn", f"recovered: {values['guard_last_event']}"
+        elif values["inputs_dropped"] > self._dropped_seen:
+            level, message = "warn", (f"input queue full: {values['inputs_dropped'] - self._dropped_seen} inputs "
+                                      f"dropped in this window (input_queue_limit {values['input_queue_limit']})")
         elif clock is None and not self._paused and target > 0 and len(steps) and rtf < 0.9 * target:
             level, message = "warn", f"running slower than real_time_factor {target:g}: {rtf:.3g}"
         elif clock is not None and clock.mode == "follow" and not self._paused and lag > FOLLOW_LAG_WARN_S:
             level, message = "warn", f"behind the master /clock by {lag:.3g} s"
         else:
             level, message = "ok", values["state"]
+        self._dropped_seen = values["inputs_dropped"]
         return convert.diagnostics(self.sim.time, DIAGNOSTIC_NAME.format(node=self._topics.node_name),
-                                   f"scene:{self.sim.scene.name}",
-                                   level, message, values)
+                                   f"scene:{self.sim.scene.name}", level, message, values)
 
     def close(self):
         """Log the end and finish the recordings (idempotent)."""
         if self._closed:
             return
         self._closed = True
+        values = self.driver.values(stability=self.driver.stability)
         self.get_logger().info(f"shutting down at t = {self.sim.time:.6g} s after {self.sim.step_count} steps; "
-                               f"rejected inputs: {sum(self._rejected.values())}")
+                               f"inputs received {values['inputs_received']}, applied {values['inputs_applied']}, "
+                               f"rejected {values['rejected_total']}, dropped {values['inputs_dropped']}")
         self._close_recording()
 
     def destroy_node(self):
         if hasattr(self, "_closed"):
+            self.stop_inputs()
             self._close_recording()
+        if getattr(self, "_inputs_node", None) is not None:
+            self._inputs_node.destroy_node()
+            self._inputs_node = None
         return super().destroy_node()
 
 
@@ -1207,7 +1013,9 @@ def main(args=None):
             code = 2
         state["starting"] = False
         if node is not None:
+            node.start_inputs()
             _spin(node, state)
+            node.stop_inputs()
             node.close()
     except (_Shutdown, KeyboardInterrupt):
         rclpy.logging.get_logger(NODE_NAME).info("interrupted while starting; exiting")

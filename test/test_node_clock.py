@@ -123,7 +123,6 @@ def test_follow_node_in_process_applies_stamped_inputs_like_the_timeline_player(
     from rclpy.context import Context
     from rclpy.parameter import Parameter
     from rclpy.signals import SignalHandlerOptions
-    from rosgraph_msgs.msg import Clock
     from mdss_ros.ros import convert
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", ros_env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
@@ -136,21 +135,23 @@ def test_follow_node_in_process_applies_stamped_inputs_like_the_timeline_player(
             Parameter("scene", value="cantilever"), Parameter("scene_overrides", value=OVERRIDES),
             Parameter("clock_mode", value="follow"), Parameter("points_publish_rate", value=30.0)])
         poses = []
-        node.pub_poses.publish = poses.append
-        assert node.pub_clock is None and node._step_timer is None
+        tp = node._topics
+        node._output_pubs[tp.domain_poses].publish = lambda data: poses.append(
+            convert.decode(data, tp.type_of(tp.domain_poses)))
+        assert tp.clock not in node._output_pubs and node._step_timer is None
         assert node.get_clock().now().nanoseconds > 0     # rclpy's own Node._clock is left alone
 
         def tick(t):
-            node._on_clock(Clock(clock=convert.stamp(t)))
+            node._on_clock(convert.clock(t))
             while node._master.steps_due(node.sim.step_count, node.sim.dt) > 0:   # what the executor does
                 node._on_step_guard()
 
-        node._on_wrench(convert.wrench_stamped(0.1, "tip", [0, 0, -20, 0, 0, 0]))
-        node._on_wrench(convert.wrench_stamped(0.3, "tip", [0, 0, 0, 0, 0, 0]))
+        node.submit("~/wrench", convert.wrench_stamped(0.1, "tip", [0, 0, -20, 0, 0, 0]))
+        node.submit("~/wrench", convert.wrench_stamped(0.3, "tip", [0, 0, 0, 0, 0, 0]))
         for i in range(1, 31):
             tick(0.02 * i)
             assert node.sim.time <= 0.02 * i + CLOCK_EPS_S and 0.02 * i - node.sim.time < node.sim.dt
-        assert node.sim.step_count == 54 and node._counts["applied"] == 2
+        assert node.sim.step_count == 54 and node.driver.counts["applied"] == 2
         sim = Simulator(load_scene("cantilever", OVERRIDES_DICT))
         player = TimelinePlayer([{"t": 0.1, "topic": "wrench", "frame_id": "tip", "force": [0, 0, -20]},
                                  {"t": 0.3, "topic": "wrench", "frame_id": "tip", "force": [0, 0, 0]}])

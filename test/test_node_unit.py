@@ -37,10 +37,13 @@ def node():
               Parameter("points_publish_rate", value=30.0)]
     n = MdssNode(context=ctx, parameter_overrides=params)
     sent = {}
-    for name in ("pub_points", "pub_poses", "pub_mesh", "pub_marker", "pub_clock"):
-        pub = getattr(n, name)
+    tp = n._topics
+    for name, topic in (("points", tp.points), ("poses", tp.domain_poses), ("mesh", tp.mesh),
+                        ("marker", tp.marker), ("clock", tp.clock)):
+        pub = n._output_pubs[topic]
         sent[name] = []
-        pub.publish = (lambda msg, name=name: sent[name].append(msg))
+        pub.publish = (lambda data, name=name, topic=topic: sent[name].append(
+            convert.decode(data, tp.type_of(topic))))           # the CDR bytes the node sends
     n.sent = sent
     yield n
     n.destroy_node()
@@ -50,6 +53,7 @@ def node():
 
 def _clear(node):
     node._srv_reset(None, None)
+    node.driver.counts["applied"] = 0
     for v in node.sent.values():
         v.clear()
 
@@ -60,11 +64,11 @@ def _wrench_msg(handle, force, t):
 
 def test_stamped_and_unstamped_inputs_take_effect_like_the_timeline_player(node):
     _clear(node)
-    node._on_wrench(_wrench_msg("tip", (0, 0, -20), 0.1))      # stamped: at the step starting at 0.1 s
-    node._on_wrench(_wrench_msg("tip", (0, 0, 0), 0.3))
+    node.submit("~/wrench", _wrench_msg("tip", (0, 0, -20), 0.1))      # stamped: at the step starting at 0.1 s
+    node.submit("~/wrench", _wrench_msg("tip", (0, 0, 0), 0.3))
     for _ in range(20):
         node.advance()
-    node._on_wrench(_wrench_msg("tip", (0, 0, -5), 0.0))        # unstamped: the next step (k = 20)
+    node.submit("~/wrench", _wrench_msg("tip", (0, 0, -5), 0.0))        # unstamped: the next step (k = 20)
     for _ in range(25):
         node.advance()
     sim = Simulator(load_scene("cantilever", OVERRIDES))
@@ -75,7 +79,7 @@ def test_stamped_and_unstamped_inputs_take_effect_like_the_timeline_player(node)
         player.apply_due(sim)
         sim.step()
     np.testing.assert_array_equal(node.sim.surface_positions(), sim.surface_positions())
-    assert node._counts["applied"] >= 3 and not node._queue
+    assert node.driver.counts["applied"] == 3 and node.driver.pending == 0
 
 
 def test_outputs_follow_their_own_grid_of_sim_time(node):
@@ -83,10 +87,10 @@ def test_outputs_follow_their_own_grid_of_sim_time(node):
     node.set_parameters([__import__("rclpy").parameter.Parameter("mesh_publish_rate", value=0.0)])
     for _ in range(9):
         node.advance()
-    stamps = [round(convert.seconds(m.header.stamp) * 90) for m in node.sent["pub_points"]]
+    stamps = [round(convert.seconds(m.header.stamp) * 90) for m in node.sent["points"]]
     assert stamps == [3, 6, 9]                                   # 30 Hz of 90 Hz steps
-    assert len(node.sent["pub_poses"]) == 9 and len(node.sent["pub_clock"]) == 9
-    assert not node.sent["pub_mesh"]
+    assert len(node.sent["poses"]) == 9 and len(node.sent["clock"]) == 9
+    assert not node.sent["mesh"]
 
 
 def test_non_finite_state_is_never_published_and_resets(node, monkeypatch):
@@ -96,8 +100,8 @@ def test_non_finite_state_is_never_published_and_resets(node, monkeypatch):
     monkeypatch.setattr(node.sim, "surface_positions", lambda: np.full((170, 3), np.nan))
     node.advance()                                               # step 3 would publish points: NaN
     monkeypatch.undo()
-    assert node.sim.time == 0.0 and node._stability == "failed"
-    for msg in node.sent["pub_points"]:
+    assert node.sim.time == 0.0 and node.driver.stability == "failed"
+    for msg in node.sent["points"]:
         rec = np.frombuffer(bytes(msg.data), dtype=convert.SURFACE_POINT_DTYPE)
         assert np.all(np.isfinite(rec["x"]))
     values = {kv.key: kv.value for kv in node.diagnostics().status[0].values}
@@ -106,11 +110,11 @@ def test_non_finite_state_is_never_published_and_resets(node, monkeypatch):
     monkeypatch.setattr(node.sim.model, "step", lambda *a, **k: (_ for _ in ()).throw(np.linalg.LinAlgError("x")))
     node.advance()
     monkeypatch.undo()
-    assert node._failures == 2 and node.sim.time == 0.0
+    assert node.driver.failures == 2 and node.sim.time == 0.0
     node.advance()
     assert node.sim.step_count == 1
     node._srv_reset(None, None)
-    assert node._stability == "ok"
+    assert node.driver.stability == "ok"
 
 
 def test_diagnostics_report_a_guard_recovery_then_ok(node, monkeypatch):
@@ -128,7 +132,7 @@ def test_diagnostics_report_a_guard_recovery_then_ok(node, monkeypatch):
     monkeypatch.setattr(model, "step", spoiled)
     node.advance()
     monkeypatch.undo()
-    assert node.sim.step_count == 1 and node._stability == "ok"       # recovered: no reset
+    assert node.sim.step_count == 1 and node.driver.stability == "ok"       # recovered: no reset
     status = node.diagnostics().status[0]
     values = {kv.key: kv.value for kv in status.values}
     assert values["stability"] == "recovered" and values["guard"] == "recovered"
@@ -144,12 +148,12 @@ def test_wrench_timeout_clears_stale_wrenches(node):
     _clear(node)
     node.set_parameters([Parameter("wrench_timeout_s", value=0.05)])
     try:
-        node._on_wrench(_wrench_msg("tip", (0, 0, -20), 0.0))
+        node.submit("~/wrench", _wrench_msg("tip", (0, 0, -20), 0.0))
         node.advance()
-        assert "tip" in node._held
+        assert "tip" in node.driver.held
         for _ in range(5):
             node.advance()
-        assert "tip" not in node._held and not node.sim._wrenches
+        assert "tip" not in node.driver.held and not node.sim._wrenches
     finally:
         node.set_parameters([Parameter("wrench_timeout_s", value=0.0)])
 

@@ -62,11 +62,11 @@ def test_sigkill_loses_at_most_about_one_second(tmp_path):
 
 def test_an_idle_recorder_flushes_by_itself(tmp_path):
     """A paused node writes nothing; what it wrote must still reach the file within ~1 s."""
-    from std_msgs.msg import Header
+    from mdss_ros.ros import convert
     path = tmp_path / "idle.mcap"
     rec = mr.McapRecorder(path, flush_interval_s=0.3)
     try:
-        rec.write("/h", Header(frame_id="only"), 1)
+        rec.write("/h", convert.header(0.0, "only"), 1)
         time.sleep(0.8)
         messages, info = mr.recover(path)               # read while the recorder is still open
         assert [m[0] for m in messages] == ["/h"] and not info["complete"]

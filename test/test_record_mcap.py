@@ -19,6 +19,8 @@ from mdss_ros.cli import main as mdss
 from mdss_ros.record import mcap_recorder as mr
 from mdss_ros.record import ros_messages as rm
 
+TS = rm.convert.TYPESTORE
+
 ROOT = Path(__file__).resolve().parent.parent
 STEPS = 60
 TIMELINE = ("[{t: 0.0, topic: wrench, frame_id: tip, force: [0, 0, -8.0]},"
@@ -30,7 +32,9 @@ TIMELINE = ("[{t: 0.0, topic: wrench, frame_id: tip, force: [0, 0, -8.0]},"
 SETS = ["body.mesh.cell=0.05", "model.domains.count=2", "model.modes=6", "model.cubature={samples: 0}",
         "colliders={ball: {shape: sphere, radius: 0.05, position: [0.5, 0.0, 0.6]}}", f"timeline={TIMELINE}"]
 SCENE_ARGS = ["cantilever"] + [a for s in SETS for a in ("--set", s)]
-INPUTS = {"/mdss/wrench": 3, "/mdss/colliders/ball/pose": 1, "/mdss/point_forces": 1, "/mdss/clear_forces/request": 1}
+# The timeline's wrench on an unknown handle is rejected when it arrives, as the node does,
+# so it is counted but not recorded: 2 of its 3 wrenches are.
+INPUTS = {"/mdss/wrench": 2, "/mdss/colliders/ball/pose": 1, "/mdss/point_forces": 1, "/mdss/clear_forces/request": 1}
 
 
 def _overrides():
@@ -67,6 +71,7 @@ def _expected_counts():
     surface_every = 3            # points at 30 Hz of sim time with dt = 1/90
     n = STEPS + 1
     counts = {"/clock": n, "/mdss/domain_poses": n, "/tf": n, "/mdss/colliders/ball/wrench": n,
+              "/mdss/colliders/ball/contacts": n,                 # the collider's touch, empty or not
               "/mdss/domain_transforms": 2 * n,                  # one per domain, as the node publishes
               "/mdss/surface/points": STEPS // surface_every + 1, "/mdss/surface/topology": 1,
               "/mdss/surface/marker": STEPS // 9 + 1, "/mdss/surface/mesh": 1, "/diagnostics": 1}
@@ -152,21 +157,15 @@ def test_file_follows_the_rosbag2_conventions(recorded):
     assert summary.statistics.message_count == sum(_expected_counts().values())
     assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
     schemas = {s.id: s for s in summary.schemas.values()}
-    share = Path(sys.prefix) / "share"
     for ch in summary.channels.values():
         s = schemas[ch.schema_id]
-        pkg, _, name = s.name.split("/")
         assert ch.message_encoding == "cdr" and s.encoding == "ros2msg"
-        # the type's .msg text, then each dependency after 80 '=' and 'MSG: pkg/Type', texts verbatim
-        blocks = s.data.decode().split("\n" + "=" * 80 + "\n")
-        if s.name != "tf2_msgs/msg/TFMessage":
-            assert blocks[0] == (share / pkg / "msg" / f"{name}.msg").read_text()
-            installed = json.loads((share / pkg / "msg" / f"{name}.json").read_text())
-            assert installed["type_hashes"][0]["hash_string"] == ch.metadata["topic_type_hash"]
-        for block in blocks[1:]:
-            header, _, body = block.partition("\n")
-            dep_pkg, dep = header[len("MSG: "):].split("/")
-            assert header.startswith("MSG: ") and body == (share / dep_pkg / "msg" / f"{dep}.msg").read_text()
+        # rosbags' ros2msg text of the type (its definition, then each dependency after 80 '='
+        # and 'MSG: pkg/Type') and rosbags' RIHS01 hash, which is the one rosidl installs
+        assert s.data.decode() == TS.generate_msgdef(s.name, ros_version=2)[0]
+        assert ch.metadata["topic_type_hash"] == TS.hash_rihs01(s.name)
+        installed = _installed_hash(s.name)
+        assert installed in (None, ch.metadata["topic_type_hash"])
         qos = mr.yaml.safe_load(ch.metadata["offered_qos_profiles"])
         assert qos[0]["reliability"] == "reliable" and qos[0]["history"] == "keep_last"
     by_topic = {ch.topic: ch for ch in summary.channels.values()}
@@ -186,7 +185,7 @@ def test_replay_check_reproduces_every_output_bit_for_bit(recorded, capsys):
     out = capsys.readouterr().out
     n_out = sum(v for k, v in _expected_counts().items() if k not in INPUTS)
     assert f"check passed: {n_out} recorded output messages reproduced bit for bit" in out
-    assert "6 inputs, 60 steps" in out
+    assert "5 inputs, 60 steps" in out              # the rejected wrench is not recorded
 
 
 def _rewrite(src, dst, change):
@@ -331,24 +330,36 @@ def test_sigterm_stops_the_run_and_finishes_the_file(tmp_path):
 
 
 # --------------------------------------------------------------------- units
+def _installed_hash(type_name):
+    """The RIHS01 hash rosidl installed for a type (share/<pkg>/msg/<T>.json), or None."""
+    import os
+    pkg, _, name = type_name.split("/")
+    prefixes = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes += [Path(sys.prefix), Path(sys.prefix) / "tf2_msgs_ws" / "install" / "tf2_msgs"]
+    for prefix in prefixes:
+        p = prefix / "share" / pkg / "msg" / f"{name}.json"
+        if p.is_file():
+            return next(h["hash_string"] for h in json.loads(p.read_text())["type_hashes"] if h["type_name"] == type_name)
+    return None
+
+
 def test_recorder_api(tmp_path):
-    from geometry_msgs.msg import TransformStamped
-    from std_msgs.msg import Header
     path = tmp_path / "api.mcap"
     errors = []
     with mr.McapRecorder(path, flush_interval_s=0, on_error=errors.append) as rec:
-        assert rec.write("/h", Header(frame_id="a"), 5_000)
-        assert rec.write("/h", Header(frame_id="b"), 3_000)          # earlier: raised to 5000
-        tr = TransformStamped(child_frame_id="c")
-        tr.header.frame_id = "world"
-        tr.transform.translation.x = 1.5
-        tr.transform.rotation.w = 1.0
+        assert rec.write("/h", rm.convert.header(0.0, "a"), 5_000)
+        assert rec.write("/h", rm.convert.header(0.0, "b"), 3_000)   # earlier: raised to 5000
+        tr = rm.convert.domain_transforms(0.0, "world", ["c"], [[1.5, 0, 0, 0, 0, 0, 1]])[0]
         assert rec.write_tf([tr, tr], 6_000)
         with pytest.raises(mr.RecordingError):
             rec.write("/h", b"\x00\x01\x00\x00", 7_000, type_name="std_msgs/msg/String")   # type changed
+        with pytest.raises(mr.RecordingError):
+            rec.write("/c", rm.convert.clock(1.0), 7_000, type_name="std_msgs/msg/Header")   # not its type
+        with pytest.raises(mr.RecordingError):
+            rec.write("/x", b"\x00\x01\x00\x00", 7_000, type_name="no_pkg/msg/Nothing")   # unknown type
     assert rec.clamped == 1 and rec.finished and not errors
     assert rec.finish()["messages"] == 3                              # idempotent
-    assert rec.write("/h", Header(), 8_000) is False                   # after finish
+    assert rec.write("/h", rm.convert.header(0.0, ""), 8_000) is False   # after finish
     messages, info = mr.recover(path)
     assert info["complete"] and [m[2] for m in messages] == [5_000, 5_000, 6_000]
     from rosbags.highlevel import AnyReader
@@ -359,46 +370,37 @@ def test_recorder_api(tmp_path):
     assert [t.transform.translation.x for t in msgs[2].transforms] == [1.5, 1.5]
 
 
-def test_type_hashes_and_definitions_follow_rosidl_and_rosbag2():
-    # The RIHS01 computation reproduces the installed hashes, so TFMessage's is trustworthy.
-    for t in ("geometry_msgs/msg/TransformStamped", "sensor_msgs/msg/PointCloud2", "visualization_msgs/msg/Marker"):
-        assert mr._rihs01(mr.type_description(t)) == mr.type_hash(t)
-    text = mr.message_definition("geometry_msgs/msg/WrenchStamped")
-    heads = [line for line in text.splitlines() if line.startswith("MSG: ")]
-    # rosbag2: dependencies sorted, depth first, each once, named as written in the field
-    assert heads == ["MSG: geometry_msgs/Wrench", "MSG: geometry_msgs/Vector3", "MSG: std_msgs/Header",
-                     "MSG: builtin_interfaces/Time"]
+@pytest.mark.parametrize("type_name", sorted(set(rm.Topics.TYPES.values())))
+def test_schemas_are_complete_and_hashes_are_rosidls(type_name):
+    """Each schema text alone rebuilds its type: parsed into an empty typestore it has the
+    RIHS01 hash of the full type, which is rosidl's where installed (share/.../<T>.json)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    text = mr.message_definition(type_name)
+    alone = get_typestore(Stores.EMPTY)
+    alone.register(get_types_from_msg(text, type_name))
+    assert alone.hash_rihs01(type_name) == mr.type_hash(type_name) == TS.hash_rihs01(type_name)
+    installed = _installed_hash(type_name)
+    if installed is None:
+        assert type_name == "tf2_msgs/msg/TFMessage"                  # only when tf2_msgs is not built here
+    else:
+        assert installed == mr.type_hash(type_name)
+    heads = [line[len("MSG: "):] for line in text.splitlines() if line.startswith("MSG: ")]
+    assert len(heads) == len(set(heads))                              # each dependency once
+    assert mr.message_definition(type_name.replace("/msg/", "/")) == text   # pkg/Type names it too
+
+
+def test_tf_hash_and_text_are_jazzys():
+    assert mr.type_hash("tf2_msgs/msg/TFMessage") == \
+        "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
     assert mr.message_definition("tf2_msgs/msg/TFMessage").startswith("geometry_msgs/TransformStamped[] transforms\n")
 
 
-def test_canonical_cdr_is_rclpys_layout_with_zero_padding():
-    from rclpy.serialization import deserialize_message, serialize_message
-    from visualization_msgs.msg import Marker
-    rng = np.random.default_rng(1)
-    msgs = [rm.convert.SurfacePoints(rng.integers(0, 3, 7)).message(1.25, "world", rng.normal(size=(7, 3))),
-            rm.convert.pose_array(0.5, "world", rng.normal(size=(3, 7))),
-            rm.convert.diagnostics(2.0, "n", "h", "warn", "m", {"a": 1.5, "b": "text", "c": 3}),
-            Marker(ns="x", text="abc", points=[rm.convert.point((1, 2, 3))])]
-    msgs += [m for ev in ({"t": 0.5, "topic": "clear_forces"},
-                          {"t": 0.5, "topic": "point_force", "point": [1, 2, 3], "force": [0, 0, 1]})
-             for _, m in rm.event_messages(ev)]
-    for msg in msgs:
-        enc = rm.CanonicalCdr()
-        mine, theirs = enc.encode(msg), serialize_message(msg)
-        pad = set(enc.padding)
-        assert len(mine) == len(theirs)
-        assert all(mine[i] == theirs[i] for i in range(len(mine)) if i not in pad)
-        assert all(mine[i] == 0 for i in pad)
-        assert deserialize_message(mine, type(msg)) == msg
-        assert rm.cdr_bytes(msg) == mine                          # deterministic
-
-
-def test_tf_message_bytes_decode_like_a_tf2_message():
+def test_a_tf_message_decodes_in_mcap_ros2_with_its_schema():
     from mcap_ros2._dynamic import generate_dynamic
     transforms = rm.convert.domain_transforms(1.5, "world", ["a", "bb", "ccc"], np.arange(21.0).reshape(3, 7))
-    data = rm.tf_message_bytes(transforms)
+    data = rm.cdr_bytes(rm.convert.tf_message(transforms))
     decode = generate_dynamic("tf2_msgs/msg/TFMessage", mr.message_definition("tf2_msgs/msg/TFMessage"))
     msg = decode["tf2_msgs/msg/TFMessage"](data)
     assert [t.child_frame_id for t in msg.transforms] == ["a", "bb", "ccc"]
     assert [t.transform.rotation.w for t in msg.transforms] == [6.0, 13.0, 20.0]
-    assert hashlib.sha256(data).digest() == hashlib.sha256(rm.tf_message_bytes(transforms)).digest()
+    assert hashlib.sha256(data).digest() == hashlib.sha256(rm.cdr_bytes(rm.convert.tf_message(transforms))).digest()

@@ -1,10 +1,13 @@
-"""mdss_ros.ros.validate: every bad input gets one rejection kind and a reason."""
+"""mdss_ros.ros.validate: every bad input gets one rejection kind and a reason.
+
+Clouds are rosbags typestore objects, as ros_messages.decode_input makes them of the
+bytes an input topic carries (data a uint8 numpy array, fields PointField dataclasses)."""
 import numpy as np
 import pytest
 
-from sensor_msgs.msg import PointCloud2, PointField
-
+from mdss_ros.record import ros_messages as rm
 from mdss_ros.ros import convert, validate
+from mdss_ros.ros.convert import PointCloud2, PointField
 from mdss_ros.ros.validate import InputRejected, Limits
 
 FORCE_FIELDS = ("x", "y", "z", "fx", "fy", "fz")
@@ -22,9 +25,10 @@ def _cloud(rows, fields=FORCE_FIELDS, dtype="<f4", frame_id="", pad=0):
     msg = PointCloud2(header=convert.header(0.0, frame_id), height=1, width=len(rows),
                       fields=[PointField(name=f, offset=i * size, datatype=kind, count=1) for i, f in enumerate(fields)],
                       point_step=rec.dtype.itemsize, row_step=rec.dtype.itemsize * len(rows),
-                      is_bigendian=dtype.startswith(">"), is_dense=True)
-    msg.data = rec.tobytes()
-    return msg
+                      is_bigendian=dtype.startswith(">"), is_dense=True, data=rec.view(np.uint8).copy())
+    # through CDR and back, as the node and replay receive it
+    topics = rm.Topics()
+    return rm.decode_input(topics, topics.point_forces, rm.cdr_bytes(msg))
 
 
 def _kind(fn, *args):
@@ -40,7 +44,9 @@ def test_point_forces_accept_padding_big_endian_and_durations():
         np.testing.assert_allclose(p, np.asarray(rows)[:, :3], rtol=1e-6)
         np.testing.assert_allclose(f, np.asarray(rows)[:, 3:6])
         np.testing.assert_allclose(d, [0.25, -1])
-    p, f, d = validate.point_forces(_cloud(rows[0][:6]), "world", Limits())
+    msg = _cloud(rows[0][:6])
+    assert msg.data.dtype == np.uint8 and type(msg.fields[0]) is PointField      # what decode_input gives
+    p, f, d = validate.point_forces(msg, "world", Limits())
     assert d.tolist() == [0.0]                                         # duration optional
 
 
@@ -50,7 +56,7 @@ def test_point_forces_rejections():
     kind, why = _kind(validate.point_forces, _cloud(good, dtype="<f8"), "world", L)
     assert kind == "bad_cloud" and "FLOAT64" in why
     short = _cloud(good)
-    short.data = bytes(short.data)[:-4]
+    short.data = short.data[:-4]
     kind, why = _kind(validate.point_forces, short, "world", L)
     assert kind == "bad_cloud" and "expected row_step" in why
     narrow = _cloud(good)

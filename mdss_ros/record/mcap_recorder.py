@@ -12,16 +12,18 @@
 
 What a file holds (what rosbag2's MCAP storage writes, so `ros2 bag`, rosbags, the
 mcap_ros2 decoder and Foxglove read it): profile `ros2`; one schema per type, named
-`pkg/msg/Type`, encoding `ros2msg`, data = the type's .msg text followed by each
-dependency (rosbag2's order: sorted, depth first) after a line of 80 `=` and a line
-`MSG: <type as written in the field>`, read from the installed `share/<pkg>/msg/*.msg`
-(tf2_msgs is not installable here: TFMessage's one-line text is embedded); one channel
-per topic, message encoding `cdr`, metadata `offered_qos_profiles` (rosbag2 YAML, v9
-names) and `topic_type_hash` (RIHS01, from `share/<pkg>/msg/<T>.json`; TFMessage's is
-computed the same way); payload = CDR bytes as given, or for a message object the
-layout rclpy.serialization.serialize_message writes with its padding bytes zeroed
-(ros_messages.cdr_bytes: rclpy leaves them uninitialised, so equal messages would not
-be equal bytes); zstd
+`pkg/msg/Type`, encoding `ros2msg`, data = rosbags' `generate_msgdef(type, ros_version=2)`
+of the Jazzy typestore (ros.convert.TYPESTORE): the type's definition followed by each
+dependency after a line of 80 `=` and a line `MSG: pkg/Type`. That is the ros2msg
+format rosbag2 writes, in rosbags' normal form: comments and default values left out,
+field types written in full (`geometry_msgs/Pose`), dependencies in field order, depth
+first (rosbag2 copies the installed .msg files verbatim, dependencies sorted); every
+decoder reads both alike, and the type hash below is the same. One channel per topic,
+message encoding `cdr`, metadata `offered_qos_profiles` (rosbag2 YAML, v9 names) and
+`topic_type_hash` (RIHS01, rosbags' `hash_rihs01`, equal to the hash rosidl installs
+in share/<pkg>/msg/<T>.json; tests check it); payload = CDR bytes as given, or for a
+message object (a TYPESTORE dataclass) rosbags' CDR with zeroed padding
+(ros_messages.cdr_bytes), so equal messages are equal bytes; zstd
 chunks with message indexes, chunk CRCs and the data-section CRC (so any changed byte
 of the data section is detected); at finish the `rosbag2` metadata record rosbag2 writes and,
 with bag_metadata=True, a `metadata.yaml` beside the file (version 9) so its folder
@@ -52,11 +54,7 @@ steps, as `mdss run` does; finish() restores the previous handlers. A ROS node h
 its own signals and calls finish() when it shuts down.
 """
 import atexit
-import copy
-import hashlib
-import json
 import os
-import re
 import signal
 import sys
 import threading
@@ -66,17 +64,9 @@ from pathlib import Path
 import yaml
 
 from ..errors import MdssError
+from ..ros.convert import TYPESTORE
 
-SEPARATOR = "=" * 80
 ROS_DISTRO = "jazzy"
-
-#: Types that cannot be installed here: their own .msg text (dependencies come from share/).
-EMBEDDED_MSG = {"tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n"}
-
-_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
-               "int32", "uint32", "int64", "uint64", "string", "wstring"}
-# rosbag2_cpp LocalMessageDefinitionSource: field types of a .msg text.
-_FIELD_TYPE = re.compile(r"(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+")
 
 
 class RecordingError(MdssError):
@@ -84,124 +74,40 @@ class RecordingError(MdssError):
 
 
 # --------------------------------------------------------------------- schemas
-def share_dirs():
-    """Install prefixes' share folders that may hold ROS interface files."""
-    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    prefixes += [sys.prefix, sys.base_prefix]
-    out = []
-    for p in prefixes:
-        d = Path(p) / "share"
-        if d.is_dir() and d not in out:
-            out.append(d)
-    return out
-
-
-def _split(type_name):
+def _full_name(type_name):
+    """'pkg/msg/Type' of 'pkg/msg/Type' or 'pkg/Type'."""
     parts = type_name.split("/")
     if len(parts) == 2:
-        return parts[0], "msg", parts[1]
-    if len(parts) == 3:
-        return parts[0], parts[1], parts[2]
-    raise RecordingError(f"type name {type_name!r} is not pkg/msg/Type")
+        parts.insert(1, "msg")
+    if len(parts) != 3 or not all(parts):
+        raise RecordingError(f"type name {type_name!r} is not pkg/msg/Type")
+    return "/".join(parts)
 
 
-def _interface_file(type_name, suffix):
-    pkg, ns, name = _split(type_name)
-    for share in share_dirs():
-        p = share / pkg / ns / f"{name}{suffix}"
-        if p.is_file():
-            return p
-    return None
-
-
-def _msg_text(type_name):
-    pkg, ns, name = _split(type_name)
-    full = f"{pkg}/{ns}/{name}"
-    if full in EMBEDDED_MSG:
-        return EMBEDDED_MSG[full]
-    p = _interface_file(type_name, ".msg")
-    if p is None:
-        raise RecordingError(f"no .msg definition of {type_name} under "
-                             f"{', '.join(str(d) for d in share_dirs()) or 'any share folder'}")
-    return p.read_text()
+def _known(type_name):
+    full = _full_name(type_name)
+    if full not in TYPESTORE.types:
+        raise RecordingError(f"{full} is not a type of rosbags' ROS 2 Jazzy typestore")
+    return full
 
 
 def message_definition(type_name):
-    """The ros2msg schema text of a type, built as rosbag2 builds it (see module doc)."""
-    seen = set()
-
-    def deps(text, pkg):
-        out = set()
-        for m in _FIELD_TYPE.finditer(text):
-            t = m.group(1)
-            if t in _PRIMITIVES:
-                continue
-            out.add(t if "/" in t else f"{pkg}/{t}")
-        return sorted(out)
-
-    def recurse(tname, depth):
-        if depth <= 0:
-            raise RecordingError(f"recursion too deep resolving the definition of {type_name}")
-        text = _msg_text(tname)
-        result = text
-        for dep in deps(text, _split(tname)[0]):
-            if dep not in seen:
-                seen.add(dep)
-                result += f"\n{SEPARATOR}\nMSG: {dep}\n" + recurse(dep, depth - 1)
-        return result
-
-    return recurse(type_name, 50)
-
-
-def _rihs01(description):
-    h = copy.deepcopy(description)
-    for td in [h["type_description"]] + h["referenced_type_descriptions"]:
-        for f in td["fields"]:
-            f.pop("default_value", None)
-    text = json.dumps(h, skipkeys=False, ensure_ascii=True, check_circular=True, allow_nan=False,
-                      indent=None, separators=(", ", ": "), sort_keys=False)
-    return "RIHS01_" + hashlib.sha256(text.encode()).hexdigest()
-
-
-def type_description(type_name):
-    """The type description (rosidl's .json `type_description_msg`) of a type, or None."""
-    pkg, ns, name = _split(type_name)
-    full = f"{pkg}/{ns}/{name}"
-    if full == "tf2_msgs/msg/TFMessage":
-        ts = type_description("geometry_msgs/msg/TransformStamped")
-        if ts is None:
-            return None
-        refs = sorted([ts["type_description"]] + ts["referenced_type_descriptions"], key=lambda r: r["type_name"])
-        # one field: sequence<geometry_msgs/TransformStamped> (FieldType NESTED_TYPE 1 + UNBOUNDED_SEQUENCE 144)
-        field = {"name": "transforms", "type": {"type_id": 145, "capacity": 0, "string_capacity": 0,
-                                                "nested_type_name": "geometry_msgs/msg/TransformStamped"},
-                 "default_value": ""}
-        return {"type_description": {"type_name": full, "fields": [field]}, "referenced_type_descriptions": refs}
-    p = _interface_file(type_name, ".json")
-    if p is None:
-        return None
-    return json.loads(p.read_text()).get("type_description_msg")
+    """The ros2msg schema text of a type (rosbags' generate_msgdef; see module doc)."""
+    return TYPESTORE.generate_msgdef(_known(type_name), ros_version=2)[0]
 
 
 def type_hash(type_name):
-    """RIHS01 hash of a type ("" when its description is not installed)."""
-    pkg, ns, name = _split(type_name)
-    full = f"{pkg}/{ns}/{name}"
-    p = _interface_file(full, ".json")
-    if p is not None:
-        for h in json.loads(p.read_text()).get("type_hashes", []):
-            if h.get("type_name") == full:
-                return h["hash_string"]
-    desc = type_description(full)
-    return _rihs01(desc) if desc else ""
+    """RIHS01 hash of a type (rosbags' hash_rihs01, rosidl's type description hash)."""
+    return TYPESTORE.hash_rihs01(_known(type_name))
 
 
 def type_name_of(msg):
-    """'pkg/msg/Type' of an rclpy message object."""
-    mod = type(msg).__module__.split(".")
-    if len(mod) < 2 or mod[1] not in ("msg", "srv", "action"):
-        raise RecordingError(f"cannot tell the ROS type of a {type(msg).__name__}; pass type_name=")
-    return f"{mod[0]}/{mod[1]}/{type(msg).__name__}"
+    """'pkg/msg/Type' of a typestore message object."""
+    name = getattr(msg, "__msgtype__", None)
+    if name is None:
+        raise RecordingError(f"cannot tell the ROS type of a {type(msg).__name__} (messages are rosbags "
+                             f"typestore objects, mdss_ros.ros.convert); pass CDR bytes and type_name=")
+    return name
 
 
 def qos_yaml(profiles):
@@ -306,7 +212,8 @@ class McapRecorder:
         return cid
 
     def write(self, topic, msg, log_time_ns, type_name=None, qos=None, publish_time_ns=None):
-        """Record one message (object or CDR bytes); True if written, False if recording stopped.
+        """Record one message (a typestore object or CDR bytes); True if written, False if
+        recording stopped. CDR bytes need type_name; an object has its own type.
 
         qos: offered QoS dict (ros_messages.qos_profile) used when the topic is first seen.
         """
@@ -316,7 +223,10 @@ class McapRecorder:
             data = bytes(msg)
         else:
             from .ros_messages import cdr_bytes
-            type_name = type_name or type_name_of(msg)
+            own = type_name_of(msg)
+            if type_name is not None and _full_name(type_name) != own:
+                raise RecordingError(f"{topic}: a {own} message given as {type_name}")
+            type_name = own
             data = cdr_bytes(msg)
         with self._lock:
             if not self.ok:
@@ -346,9 +256,9 @@ class McapRecorder:
 
     def write_tf(self, transforms, log_time_ns, topic="/tf"):
         """Record geometry_msgs/TransformStamped objects as one tf2_msgs/msg/TFMessage."""
-        from .ros_messages import qos_profile, tf_message_bytes
-        return self.write(topic, tf_message_bytes(list(transforms)), log_time_ns,
-                          type_name="tf2_msgs/msg/TFMessage", qos=qos_profile(100))
+        from ..ros.convert import tf_message
+        from .ros_messages import qos_profile
+        return self.write(topic, tf_message(transforms), log_time_ns, qos=qos_profile(100))
 
     def add_metadata(self, name, data):
         """An MCAP metadata record: name and a {str: str} map."""

@@ -6,15 +6,15 @@ Recording (what `mdss run SCENE --mcap F --rrd R` does, usable from Python):
     sim = rec.build("cantilever", overrides)             # the Simulator, cache events noted
     rec.start(sim)                                       # metadata, topology, state at t = 0
     for k in range(steps):
-        rec.apply_due(sim)                               # timeline inputs due now, as messages
-        sim.step()
-        rec.after_step()                                 # outputs due, /clock, /diagnostics, rerun
+        events, ok = rec.advance()                       # due inputs, the step, its outputs
     rec.finish()                                         # idempotent; also on SIGINT/SIGTERM
 
-Every timeline event becomes the message the node would receive (ros_messages.
-event_messages), stamped with its time; it is recorded when applied (log time = the sim
-time of the step it precedes) and applied from its decoded bytes, the node's way. The
-outputs are the node's topics under /mdss (ros_messages.SimOutputs). Log times are sim
+The loop is the node's: mdss_ros.ros.driver.Driver, the one driver the node, the
+headless run and the replay share. Every timeline event becomes the message the node
+would receive (ros_messages.event_messages), stamped with its time, and goes through the
+driver as a received message does: decoded, checked, applied at its step and recorded
+then (log time = the run time of the step it precedes). The outputs are the node's
+topics under /mdss (ros_messages.SimOutputs). Log times are sim
 time in ns; publish times are the wall clock (time.time_ns()) at which the message was
 produced, which is how a killed run's loss is measured. The MCAP also holds metadata
 `mdss_run` (the validated scene as JSON, its base folder, namespace, frame, output
@@ -27,7 +27,7 @@ Replay (`mdss replay LOG.mcap [--scene S] [--check]`):
     result.ok, result.first_mismatch, result.compared, result.mismatches
 
 reads the file once with CRC checks (chunk CRCs, the data-section CRC, the summary CRC),
-builds the scene it holds (or --scene), re-applies the recorded inputs at their log times
+builds the scene it holds (or --scene), feeds the same driver the recorded inputs at their log times
 (the run time at which the run applied them: a node applies a late input after its stamp,
 so the stamp is not enough), with ~/reset_simulation calls (recorded as inputs) resetting
 the simulator where the run did and the node's wrench_timeout_s and input limits taken from
@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MdssError
+from ..ros.driver import Driver
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -114,122 +115,6 @@ def run_metadata(sim, namespace, world_frame, rates, cache_events=(), **extra):
     return meta
 
 
-class Driver:
-    """Steps inputs in and outputs out around Simulator.step(); shared by run and replay.
-
-    emit(out: ros_messages.Out, log_time_ns) hears every output (and every applied input
-    when emit_inputs); rerun: a RerunLogger or None; report(text) hears rejections.
-    """
-
-    def __init__(self, sim, inputs, topics, rates, world_frame, emit, emit_inputs=True, rerun=None,
-                 report=None, limits=None, wrench_timeout_s=0.0):
-        from .ros_messages import InputApplier, SimOutputs
-        self.sim = sim
-        self.pending = list(inputs)
-        self.offset = 0.0                  # run time at the last reset (sim time restarts at 0)
-        self.wrench_timeout_s = float(wrench_timeout_s)
-        self._held = {}                    # handle -> sim time its wrench was set (the node's rule)
-        self.topics = topics
-        self.outputs = SimOutputs(sim, topics, world_frame, rates)
-        self.emit = emit
-        self.emit_inputs = emit_inputs
-        self.rerun = rerun
-        self.report = report or (lambda text: None)
-        self.applier = InputApplier(sim, topics, world_frame, limits=limits,
-                                    on_collider_pose=rerun.collider_pose if rerun is not None else None)
-        self._window = []
-        self._window_start = (time.perf_counter(), sim.time)
-
-    @property
-    def run_time(self):
-        """Time since the start of the run, counting on across resets (the log time)."""
-        return self.offset + self.sim.time
-
-    def _emit_all(self, outs):
-        for out in outs:
-            self.emit(out, _ns(self.offset + out.stamp_s))
-
-    def start(self):
-        self._emit_all(self.outputs.topology())
-        self._emit_all(self.outputs.state(None))
-        if self.outputs.rates.diagnostics > 0:
-            self._emit_diagnostics()
-        if self.rerun is not None:
-            self.rerun.log_step()
-
-    def apply_due(self):
-        """Apply (and emit) the inputs due before the coming step; [(Input, description)]."""
-        from .ros_messages import Out, decode_input
-        from ..ros.validate import InputRejected
-        sim = self.sim
-        applied = []
-        while self.pending and self.pending[0].due_s <= self.run_time + 0.5 * sim.dt:
-            item = self.pending.pop(0)
-            if self.emit_inputs:
-                self.emit(Out(item.topic, self.topics.type_of(item.topic), item.data, sim.time), _ns(self.run_time))
-            kind = self.topics.kind(item.topic)
-            if kind == "reset":
-                self._reset()
-                applied.append((item, "reset"))
-                continue
-            try:
-                msg = decode_input(self.topics, item.topic, item.data)
-                desc = self.applier.apply(item.topic, msg)
-                self._hold(kind, msg)
-            except InputRejected as err:
-                desc = f"rejected: {err.reason}"
-                self.report(f"t = {sim.time:.6g} s: input on {item.topic} {desc}")
-            applied.append((item, desc))
-        self._expire_wrenches()
-        return applied
-
-    def _reset(self):
-        """The node's ~/reset_simulation: sim time back to 0, the state at start published."""
-        self.offset += self.sim.time
-        self.sim.reset()
-        self._held.clear()
-        self._emit_all(self.outputs.state(None))
-
-    def _hold(self, kind, msg):
-        """Track held wrenches for wrench_timeout_s, as the node does."""
-        if kind == "clear_forces":
-            self._held.clear()
-        elif kind == "wrench":
-            f, tq = msg.wrench.force, msg.wrench.torque
-            if any((f.x, f.y, f.z, tq.x, tq.y, tq.z)):
-                self._held[msg.header.frame_id] = self.sim.time
-            else:
-                self._held.pop(msg.header.frame_id, None)
-
-    def _expire_wrenches(self):
-        if self.wrench_timeout_s <= 0:
-            return
-        for handle, t_set in list(self._held.items()):
-            if self.sim.time - t_set >= self.wrench_timeout_s - 1e-9:
-                self.sim.set_wrench(handle)
-                del self._held[handle]
-
-    def after_step(self, previous_step, step_ms=None):
-        """Emit what is due after the step from previous_step (sim.step_count now)."""
-        if step_ms is None:
-            step_ms = self.sim.stats().get("step_ms", 0.0)
-        self._window.append(step_ms)
-        self._emit_all(self.outputs.state(previous_step))
-        if self.outputs.diagnostics_due(previous_step):
-            self._emit_diagnostics()
-        if self.rerun is not None:
-            self.rerun.log_step(step_ms)
-
-    def _emit_diagnostics(self):
-        wall0, sim0 = self._window_start
-        now = time.perf_counter()
-        out = self.outputs.diagnostics(self._window, wall_s=now - wall0, sim_s=self.sim.time - sim0,
-                                       inputs_applied=self.applier.applied, inputs_rejected=self.applier.rejected)
-        self.emit(out, _ns(out.stamp_s))
-        self._window = []
-        self._window_start = (now, self.sim.time)
-
-
 def timeline_inputs(events, topics, world_frame):
     """Input list (application order) of a scene timeline: each event as CDR message bytes."""
     from .ros_messages import cdr_bytes, event_messages, input_stamp
@@ -255,6 +140,7 @@ class RunRecording:
         self.rrd = rrd
         self.rerun = None
         self.driver = None
+        self._events = []                  # (due, timeline event) not yet applied
         self.cache_events = []
         self.recorder = None
         self.stop_signal = None
@@ -309,29 +195,31 @@ class RunRecording:
         self._stop_on_signals()
         if self.rrd:
             self.rerun = RerunLogger(sim, mode="file", path=self.rrd)
-        inputs = timeline_inputs(sim.scene["timeline"], self.topics, self.world_frame)
-        self.driver = Driver(sim, inputs, self.topics, self.rates, self.world_frame, self._write,
-                             rerun=self.rerun, report=lambda text: self.out(f"  {text}"))
+        self.driver = Driver(sim, self.topics, self.world_frame, self.rates, self._write, rerun=self.rerun,
+                             report=self._report, queue_limit=None)
+        for item in timeline_inputs(sim.scene["timeline"], self.topics, self.world_frame):
+            self.driver.submit(item.topic, item.data, due_s=item.due_s)
+            self._events.append((item.due_s, item.event))
         self.driver.start()
 
-    def _write(self, out, log_time_ns):
+    def _report(self, level, text, key=None):
+        self.out(f"  {text}")
+
+    def _write(self, out, log_time_ns, is_input):
         if self.recorder is not None:
             self.recorder.write(out.topic, out.data, log_time_ns, type_name=out.type_name,
                                 qos=self.topics.qos_of(out.topic), publish_time_ns=time.time_ns())
 
-    def apply_due(self, sim):
-        """Timeline events applied before the coming step (TimelinePlayer.apply_due's contract)."""
+    def advance(self):
+        """One step through the driver; the timeline events applied before it (each once),
+        and whether the step went well (False: it failed and the driver reset)."""
+        limit = self.driver.run_time + 0.5 * self.driver.sim.dt
         events = []
-        for item, desc in self.driver.apply_due():
-            if desc.startswith("rejected"):
-                continue                   # reported by the driver with its reason
-            if item.event is not None and (not events or events[-1] is not item.event):
-                events.append(item.event)
-        return events
-
-    def after_step(self, previous_step=None, step_ms=None):
-        prev = self.driver.sim.step_count - 1 if previous_step is None else previous_step
-        self.driver.after_step(prev, step_ms)
+        while self._events and self._events[0][0] <= limit:
+            ev = self._events.pop(0)[1]
+            if not events or events[-1] is not ev:
+                events.append(ev)
+        return events, self.driver.advance()
 
     def finish(self):
         """Finish the MCAP and the .rrd; a summary line per file. Idempotent."""
@@ -565,7 +453,10 @@ def replay(path, scene=None, overrides=None, check=False, out=print):
     cursor = {t: 0 for t in rec.outputs}
     produced = {}
 
-    def compare(o, log_time_ns):
+    def report(level, text, key=None):
+        out(f"  {text}")
+
+    def compare(o, log_time_ns, is_input=False):
         produced[o.topic] = produced.get(o.topic, 0) + 1
         if not check:
             return
@@ -587,20 +478,20 @@ def replay(path, scene=None, overrides=None, check=False, out=print):
                 result.first_mismatch = (f"{o.topic} message {i} (t = {o.stamp_s:.6f} s): "
                                          + _explain(o.topic, recorded, data, topics))
 
-    driver = Driver(sim, rec.inputs, topics, rates, world_frame, compare, emit_inputs=False,
-                    report=lambda text: out(f"  {text}"), limits=limits, wrench_timeout_s=wrench_timeout_s)
-    try:
-        driver.start()
-        while True:
-            driver.apply_due()
-            if driver.run_time >= end_s - 0.5 * sim.dt:
-                break
-            k = sim.step_count
-            sim.step()
-            result.steps += 1
-            driver.after_step(k)
-    except (FloatingPointError, ArithmeticError, np.linalg.LinAlgError) as err:
-        raise ReplayError(f"{path}: the replay failed at t = {sim.time:.6g} s: {err}") from err
+    # The node's own driver, fed the recorded inputs at the run times they were applied;
+    # a failed step resets by itself, as it did in the run, so the run's "failure" resets
+    # are not applied a second time.
+    driver = Driver(sim, topics, world_frame, rates, compare, emit_inputs=False, report=report,
+                    limits=limits, wrench_timeout_s=wrench_timeout_s, queue_limit=None, replay_failures=False)
+    for item in rec.inputs:
+        driver.submit(item.topic, item.data, due_s=item.due_s)
+    driver.start()
+    while True:
+        driver.apply_due()
+        if driver.run_time >= end_s - 0.5 * sim.dt:
+            break
+        driver.advance()
+        result.steps += 1
     if check:
         for topic, expected in rec.outputs.items():
             left = len(expected) - cursor.get(topic, 0)

@@ -11,45 +11,46 @@ what recording needs on top:
     outputs.topology()                              # [Out] once: ~/surface/topology
     outputs.state(previous_step=None)               # [Out] /clock + every output due after
                                                     #   the step from previous_step (None: all)
-    outputs.diagnostics(step_ms)                    # Out: /diagnostics of the last window
-    inputs = InputApplier(sim, topics)
-    for topic, msg in event_messages(event, topics):  # a scene timeline event -> messages
-        inputs.apply(topic, msg)                    # applied as the node applies them
-    tf_message_bytes(transforms)                    # tf2_msgs/msg/TFMessage CDR bytes
+    event_messages(event, topics)                   # [(topic, message)] of a timeline event
+    cdr_bytes(msg)                                  # CDR bytes of a message object
+    decode_input(topics, topic, data)               # an input topic's CDR bytes -> message
 
-An `Out` is (topic, type_name, data: CDR bytes, stamp_s). Bytes, not message objects:
-the recorder stores them as they are and replay compares them byte for byte.
+Messages are objects of rosbags' Jazzy typestore (convert.TYPESTORE); their CDR is
+rosbags' (`cdr_bytes`): rmw_fastrtps's layout with the padding bytes zeroed, so equal
+messages are equal bytes. An `Out` is (topic, type_name, data: CDR bytes, stamp_s).
+Bytes, not message objects: the node publishes them as they are, the recorder stores
+them as they are and replay compares them byte for byte.
 
 Output times follow the node: step k publishes an output of rate r (Hz of sim time)
 when floor(k dt r) changed; /clock goes out every step; rate 0 turns an output off.
 /diagnostics runs at `diagnostics_rate` Hz of *sim* time here (the node uses wall time);
-its timing values (TIMING_KEYS) differ from run to run, everything else is reproducible.
+its timing values (TIMING_KEYS) differ from run to run, and its input counts
+(INPUT_COUNT_PREFIXES) from a run to its replay; everything else is reproducible.
 
-Inputs are applied through mdss_ros.ros.validate, as the node does, from the decoded
-message: point forces therefore act in float32, as they arrive on ~/point_forces.
+Inputs are decoded (decode_input), checked (mdss_ros.ros.validate) and applied by the one
+driver the node, the run and the replay share (mdss_ros.ros.driver), from their bytes as
+the node's raw subscriptions receive them: point forces therefore act in float32, as they
+arrive on ~/point_forces.
 A call of the ~/clear_forces service is not a message; it is recorded on
 `~/clear_forces/request` as a std_msgs/msg/Header stamped with its sim time (a service
 event type would not decode in mcap_ros2 or rosbags).
 """
 import math
-import struct
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
-from geometry_msgs.msg import PoseStamped, WrenchStamped
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Header
-
-from ..ros import convert, validate
+from ..ros import convert
 
 NAMESPACE = "/mdss"
 WORLD_FRAME = "world"
 
 #: /diagnostics values that measure wall time (differ between a run and its replay).
 TIMING_KEYS = frozenset({"step_ms_median", "step_ms_max", "real_time_factor"})
+#: /diagnostics values that count the input stream (inputs_*, rejected_*): a recording holds
+#: only the inputs that were applied, so a replay cannot count what was rejected or pending.
+INPUT_COUNT_PREFIXES = ("inputs_", "rejected_")
 
 #: ~/point_forces layout written for timeline point forces (node: x y z fx fy fz [duration]).
 POINT_FORCE_DTYPE = np.dtype([(f, "<f4") for f in ("x", "y", "z", "fx", "fy", "fz", "duration")])
@@ -85,6 +86,7 @@ class Topics:
         "domain_transforms": "geometry_msgs/msg/TransformStamped",
         "contacts": "sensor_msgs/msg/PointCloud2",
         "collider_wrench": "geometry_msgs/msg/WrenchStamped",
+        "collider_contacts": "sensor_msgs/msg/PointCloud2",
         "clock": "rosgraph_msgs/msg/Clock",
         "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
         "tf": "tf2_msgs/msg/TFMessage",
@@ -124,6 +126,9 @@ class Topics:
     def collider_wrench(self, name):
         return f"{self.namespace}/colliders/{name}/wrench"
 
+    def collider_contacts(self, name):
+        return f"{self.namespace}/colliders/{name}/contacts"
+
     def kind(self, topic):
         """The kind of a topic name (a key of TYPES), or None for a topic not of this node."""
         for k in ("wrench", "point_forces", "clear_forces", "reset", "topology", "points", "mesh", "marker",
@@ -133,7 +138,7 @@ class Topics:
         prefix = f"{self.namespace}/colliders/"
         if topic.startswith(prefix) and topic.count("/") == prefix.count("/") + 1:
             leaf = topic.rsplit("/", 1)[1]
-            return {"pose": "collider_pose", "wrench": "collider_wrench"}.get(leaf)
+            return {"pose": "collider_pose", "wrench": "collider_wrench", "contacts": "collider_contacts"}.get(leaf)
         return None
 
     def collider_of(self, topic):
@@ -198,130 +203,19 @@ def seconds_of(stamp):
     return convert.seconds(stamp)
 
 
-# --------------------------------------------------------------------- canonical CDR
-_BASIC = {"boolean": "?", "octet": "B", "char": "B", "uint8": "B", "int8": "b", "int16": "h",
-          "uint16": "H", "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q", "float": "f",
-          "double": "d"}
-
-
-class CanonicalCdr:
-    """Little-endian CDR (XCDR1, rmw_fastrtps's layout) of an rclpy message, padding zeroed.
-
-    rclpy.serialization.serialize_message leaves CDR padding bytes uninitialised (the same
-    message serialises to different bytes), so recordings that replay compares byte for
-    byte are encoded here: the same layout, with zeros in the padding. Decoders read both
-    alike. `padding` lists the padding byte positions of the last encode (tests).
-    """
-
-    def __init__(self):
-        self.buf = bytearray()
-        self.padding = []
-
-    def encode(self, msg):
-        self.buf = bytearray(b"\x00\x01\x00\x00")
-        self.padding = []
-        self._struct(msg)
-        return bytes(self.buf)
-
-    def _align(self, n):
-        pad = (-(len(self.buf) - 4)) % n
-        if pad:
-            self.padding.extend(range(len(self.buf), len(self.buf) + pad))
-            self.buf.extend(b"\x00" * pad)
-
-    def _basic(self, typename, value):
-        fmt = _BASIC[typename]
-        size = struct.calcsize(fmt)
-        self._align(size)
-        if typename in ("octet", "char") and isinstance(value, (bytes, str)):
-            value = ord(value)
-        self.buf.extend(struct.pack("<" + fmt, value))
-
-    def _basic_block(self, typename, values):
-        fmt = _BASIC[typename]
-        n = len(values)
-        if not n:
-            return
-        self._align(struct.calcsize(fmt))
-        if typename in ("octet", "char") and isinstance(values, (bytes, bytearray)):
-            self.buf.extend(values)
-        elif typename in ("octet", "char") and len(values) and isinstance(values[0], (bytes, str)):
-            self.buf.extend(bytes(ord(v) for v in values))
-        else:
-            self.buf.extend(np.asarray(values, dtype="<" + fmt if fmt != "?" else "?").tobytes())
-
-    def _string(self, s):
-        b = s.encode() + b"\x00"
-        self._align(4)
-        self.buf.extend(struct.pack("<I", len(b)))
-        self.buf.extend(b)
-
-    def _value(self, t, value):
-        from rosidl_parser import definition as d
-        if isinstance(t, d.BasicType):
-            self._basic(t.typename, value)
-        elif isinstance(t, d.AbstractString):
-            self._string(value)
-        elif isinstance(t, d.NamespacedType):
-            self._struct(value)
-        elif isinstance(t, (d.Array, d.AbstractSequence)):
-            if not isinstance(t, d.Array):
-                self._align(4)
-                self.buf.extend(struct.pack("<I", len(value)))
-            vt = t.value_type
-            if isinstance(vt, d.BasicType):
-                self._basic_block(vt.typename, value)
-            else:
-                for v in value:
-                    self._value(vt, v)
-        else:
-            raise TypeError(f"cannot encode a field of type {t!r}")
-
-    def _struct(self, msg):
-        for slot, t in zip(msg.__slots__, msg.SLOT_TYPES):
-            if slot == "_check_fields":
-                continue
-            self._value(t, getattr(msg, slot))
-
-
+# --------------------------------------------------------------------- CDR
 def cdr_bytes(msg):
-    """Canonical CDR bytes of an rclpy message object (see CanonicalCdr); bytes pass through."""
-    if isinstance(msg, (bytes, bytearray)):
+    """CDR bytes of a typestore message object (convert.TYPESTORE); bytes pass through.
+
+    Little-endian, padding zeroed (rosbags' serialize_cdr), so the same message is always
+    the same bytes, as replay's byte-for-byte comparison needs."""
+    if isinstance(msg, (bytes, bytearray, memoryview)):
         return bytes(msg)
-    return CanonicalCdr().encode(msg)
-
-
-# --------------------------------------------------------------------- /tf
-def tf_message_bytes(transforms):
-    """tf2_msgs/msg/TFMessage CDR bytes (tf2_msgs is not installable here).
-
-    transforms: geometry_msgs/msg/TransformStamped objects (convert.domain_transforms).
-    Little-endian CDR as rmw_fastrtps writes it; alignment counts from after the 4-byte
-    encapsulation header, so each element is laid out in place (not concatenated).
-    """
-    out = bytearray(b"\x00\x01\x00\x00")
-
-    def align(n):
-        pad = (-(len(out) - 4)) % n
-        out.extend(b"\x00" * pad)
-
-    def string(s):
-        b = s.encode() + b"\x00"
-        align(4)
-        out.extend(struct.pack("<I", len(b)))
-        out.extend(b)
-
-    align(4)
-    out.extend(struct.pack("<I", len(transforms)))
-    for tr in transforms:
-        align(4)
-        out.extend(struct.pack("<iI", tr.header.stamp.sec, tr.header.stamp.nanosec))
-        string(tr.header.frame_id)
-        string(tr.child_frame_id)
-        t, q = tr.transform.translation, tr.transform.rotation
-        align(8)
-        out.extend(struct.pack("<7d", t.x, t.y, t.z, q.x, q.y, q.z, q.w))
-    return bytes(out)
+    type_name = getattr(msg, "__msgtype__", None)
+    if type_name is None:
+        raise TypeError(f"cannot serialise a {type(msg).__module__}.{type(msg).__name__}: messages are "
+                        f"rosbags typestore objects (mdss_ros.ros.convert) or CDR bytes")
+    return bytes(convert.TYPESTORE.serialize_cdr(msg, type_name, little_endian=True))
 
 
 # --------------------------------------------------------------------- outputs
@@ -373,11 +267,19 @@ class SimOutputs:
             transforms = convert.domain_transforms(t, self.frame, self.domain_names, poses)
             out.extend(self._out(tp.domain_transforms, msg, t) for msg in transforms)
             tf = convert.domain_transforms(t, self.frame, self.domain_names, poses, prefix=tp.tf_prefix)
-            out.append(self._out(tp.tf, tf_message_bytes(tf), t))
+            out.append(self._out(tp.tf, convert.tf_message(tf), t))
+            # Touch per collider (a tactile sensor's reading): its net wrench, and its own
+            # contacts as a cloud in ~/contacts' layout, empty when it touches nothing.
+            touch = sim.contacts(split=True) if self.colliders else None
             for c in self.colliders:
                 w = sim.collider_wrench(c)
                 _finite(f"wrench on collider {c!r}", w, t)
                 out.append(self._out(tp.collider_wrench(c), convert.wrench_stamped(t, self.frame, w), t))
+                mine = touch["collider"] == c
+                rows = np.hstack([touch["points"][mine], touch["normals"][mine], touch["depth"][mine, None],
+                                  touch["force"][mine]])
+                _finite(f"contacts of collider {c!r}", rows, t)
+                out.append(self._out(tp.collider_contacts(c), convert.contacts_cloud(t, self.frame, rows), t))
         contacts_of = getattr(sim, "contacts", None)
         if callable(contacts_of):
             contacts = np.asarray(contacts_of(), dtype=np.float64)
@@ -389,33 +291,6 @@ class SimOutputs:
     def diagnostics_due(self, previous_step):
         return due(self.rates.diagnostics, self.sim.dt, self.sim.step_count, previous_step)
 
-    def diagnostics(self, step_ms=(), wall_s=None, sim_s=None, inputs_applied=0, inputs_rejected=0):
-        """/diagnostics of a window: step_ms of its steps, wall_s and sim_s it took."""
-        sim = self.sim
-        steps = np.asarray(step_ms, dtype=np.float64)
-        energy = sim.energy()
-        stats = sim.stats()
-        values = {
-            "state": "running",
-            "sim_time": sim.time,
-            "steps": sim.step_count,
-            "physics_dt": sim.dt,
-            "step_ms_median": float(np.median(steps)) if len(steps) else 0.0,
-            "step_ms_max": float(steps.max()) if len(steps) else 0.0,
-            "real_time_factor": (sim_s / wall_s) if wall_s and sim_s is not None else 0.0,
-            "energy_total": energy["total"],
-            "energy_kinetic": energy["kinetic"],
-            "energy_elastic": energy["elastic"],
-            "stability": stats.get("stability", "ok"),
-            "dofs": stats.get("dofs", 0),
-            "domains": len(self.domain_names),
-            "surface_vertices": len(self.surface_ids),
-            "inputs_applied": inputs_applied,
-            "rejected_total": inputs_rejected,
-        }
-        msg = convert.diagnostics(sim.time, f"{self.topics.node_name}: simulation", f"scene:{sim.scene.name}", "ok", "running", values)
-        return self._out(self.topics.diagnostics, msg, sim.time)
-
 
 def _finite(what, a, t):
     if not np.all(np.isfinite(a)):
@@ -423,21 +298,17 @@ def _finite(what, a, t):
 
 
 def mask_timing(diagnostics_bytes):
-    """/diagnostics bytes with the TIMING_KEYS values blanked (for run-vs-replay comparison)."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    msg = deserialize_message(diagnostics_bytes, DiagnosticArray)
+    """/diagnostics bytes with the TIMING_KEYS and input-count values blanked (for
+    run-vs-replay comparison)."""
+    msg = convert.decode(diagnostics_bytes, "diagnostic_msgs/msg/DiagnosticArray")
     for status in msg.status:
         for kv in status.values:
-            if kv.key in TIMING_KEYS:
+            if kv.key in TIMING_KEYS or kv.key.startswith(INPUT_COUNT_PREFIXES):
                 kv.value = ""
     return cdr_bytes(msg)
 
 
 # --------------------------------------------------------------------- inputs
-def _stamp(t):
-    return convert.stamp(t)
-
-
 def event_messages(ev, topics=None, world_frame=WORLD_FRAME):
     """[(topic, message)] the node would receive for a scene timeline event (stamped at ev t)."""
     topics = topics or Topics()
@@ -455,18 +326,11 @@ def event_messages(ev, topics=None, world_frame=WORLD_FRAME):
         rec["duration"] = ev.get("duration", 0.0)
         return [(topics.point_forces, convert.cloud(t, world_frame, rec))]
     if kind == "collider_pose":
-        msg = PoseStamped(header=convert.header(t, world_frame))
-        p, o = msg.pose.position, msg.pose.orientation
-        p.x, p.y, p.z = (float(v) for v in ev["position"])
-        o.x, o.y, o.z, o.w = (float(v) for v in ev.get("orientation", (0, 0, 0, 1)))
+        msg = convert.pose_stamped(t, world_frame, ev["position"], ev.get("orientation", (0, 0, 0, 1)))
         return [(topics.collider_pose(ev["name"]), msg)]
     if kind == "clear_forces":
-        return [(topics.clear_forces, Header(stamp=_stamp(t), frame_id=""))]
+        return [(topics.clear_forces, convert.header(t, ""))]
     raise ValueError(f"unknown timeline topic {kind!r}")
-
-
-_MSG_CLASS = {"wrench": WrenchStamped, "point_forces": PointCloud2, "clear_forces": Header,
-              "collider_pose": PoseStamped, "reset": Header}
 
 
 def input_stamp(topics, topic, msg):
@@ -476,67 +340,11 @@ def input_stamp(topics, topic, msg):
 
 
 def decode_input(topics, topic, data):
-    """The message object of an input topic's CDR bytes."""
-    return deserialize_message(data, _MSG_CLASS[topics.kind(topic)])
+    """The message object (convert.TYPESTORE) of an input topic's CDR bytes.
 
-
-class InputApplier:
-    """Applies input messages to a Simulator with the node's checks (mdss_ros.ros.validate).
-
-    apply(topic, msg) -> short description; raises validate.InputRejected for an input the
-    node would reject (the caller counts it and goes on, as the node does).
-    on_collider_pose(name, position, orientation) hears applied collider poses (rerun).
-    """
-
-    def __init__(self, sim, topics=None, world_frame=WORLD_FRAME, limits=None, on_collider_pose=None):
-        self.sim = sim
-        self.topics = topics or Topics()
-        self.world_frame = world_frame
-        self.limits = limits or validate.Limits()
-        self.handles = set(sim.scene["handles"])
-        self.colliders = set(sim.scene["colliders"])
-        self.on_collider_pose = on_collider_pose
-        self.applied = 0
-        self.rejected = 0
-
-    def apply(self, topic, msg):
-        kind = self.topics.kind(topic)
-        try:
-            desc = self._apply(kind, topic, msg)
-        except validate.InputRejected:
-            self.rejected += 1
-            raise
-        except (KeyError, ValueError) as err:
-            self.rejected += 1
-            raise validate.InputRejected("apply_error", f"{kind}: {err}") from err
-        self.applied += 1
-        return desc
-
-    def _apply(self, kind, topic, msg):
-        sim = self.sim
-        if kind == "wrench":
-            w = msg.wrench
-            handle, f, tq = validate.wrench(msg.header.frame_id, (w.force.x, w.force.y, w.force.z),
-                                            (w.torque.x, w.torque.y, w.torque.z), self.handles, self.limits)
-            sim.set_wrench(handle, f, tq)
-            return f"wrench on {handle}: force {f.tolist()} torque {tq.tolist()}"
-        if kind == "point_forces":
-            p, f, d = validate.point_forces(msg, self.world_frame, self.limits)
-            for pi, fi, di in zip(p, f, d):
-                sim.add_point_force(pi, fi, float(di))
-            return f"{len(p)} point force(s)"
-        if kind == "clear_forces":
-            sim.clear_forces()
-            return "clear_forces"
-        if kind == "collider_pose":
-            name = self.topics.collider_of(topic)
-            if name not in self.colliders:
-                raise validate.InputRejected("unknown_collider", f"the scene has no collider {name!r}")
-            validate.frame(msg.header.frame_id, self.world_frame, f"colliders/{name}/pose")
-            pp, o = msg.pose.position, msg.pose.orientation
-            pos, quat = validate.pose((pp.x, pp.y, pp.z), (o.x, o.y, o.z, o.w), self.limits)
-            sim.set_collider_pose(name, pos, quat)
-            if self.on_collider_pose:
-                self.on_collider_pose(name, pos, quat)
-            return f"collider {name} at {pos.tolist()}"
-        raise validate.InputRejected("apply_error", f"{topic} is not an input topic of {self.topics.namespace}")
+    Raises KeyError for a topic that is not an input of `topics` (replay reports it);
+    rosbags' errors for bytes that do not decode as the topic's type."""
+    kind = topics.kind(topic)
+    if kind not in topics.INPUTS:
+        raise KeyError(f"{topic} is not an input topic of {topics.namespace or '/'}")
+    return convert.decode(data, topics.TYPES[kind])

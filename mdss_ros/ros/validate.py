@@ -3,6 +3,11 @@
 Every check the node makes on an input lives here, as a plain function of the message
 fields, so each rejection has one kind (a /diagnostics counter `rejected_<kind>`) and a
 reason a user can act on. Nothing here touches the simulator.
+
+Messages are what ros_messages.decode_input makes of an input's CDR bytes: rosbags
+typestore objects (convert.TYPESTORE), read by field name only, so a PointCloud2's
+`fields` are PointField dataclasses and its `data` a uint8 numpy array (any buffer of
+bytes is read alike).
 """
 import math
 from dataclasses import dataclass
