@@ -1,0 +1,119 @@
+"""The simulation driver's rules without ROS (mdss_ros/ros/driver.py): every input counted,
+the bounded queue, stamp order, failures that reset, and a run with a failure that replays
+bit for bit."""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator, load_scene
+from mdss_ros.record.ros_messages import OutputRates, Topics, cdr_bytes
+from mdss_ros.ros import convert
+from mdss_ros.ros.driver import Driver
+from mdss_ros.timeline import TimelinePlayer
+
+OVERRIDES = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 6}
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_scene("cantilever", OVERRIDES)
+
+
+def _driver(scene, queue_limit=100, **kw):
+    out = []
+    sim = Simulator(scene)
+    d = Driver(sim, Topics("/mdss"), "world", OutputRates(diagnostics=0.0),
+               lambda o, t, is_input: out.append((o, t, is_input)), queue_limit=queue_limit, **kw)
+    d.start()
+    return d, out
+
+
+def _wrench(t, handle="tip", fz=-10.0):
+    return cdr_bytes(convert.wrench_stamped(t, handle, [0, 0, fz, 0, 0, 0]))
+
+
+def _counted(d):
+    v = d.values()
+    return v["inputs_received"] == (v["inputs_applied"] + v["rejected_total"] + v["inputs_pending"]
+                                    + v["inputs_dropped"] + v["inputs_cleared"])
+
+
+def test_every_input_is_counted_once_and_a_full_queue_drops_with_a_count(scene):
+    d, _ = _driver(scene, queue_limit=3)
+    tp = d.topics
+    assert d.submit(tp.wrench, _wrench(0.5))                     # stamped ahead: waits
+    assert not d.submit(tp.wrench, _wrench(0.0, "no_such_handle"))        # rejected: unknown handle
+    assert not d.submit(tp.wrench, b"\x00\x01\x00\x00\x07")      # rejected: does not decode
+    assert not d.submit(tp.collider_pose("ghost"), cdr_bytes(convert.pose_stamped(0.0, "world", (0, 0, 0))))
+    assert not d.submit(tp.wrench, _wrench(0.0, fz=np.nan))      # rejected: non-finite
+    assert d.submit(tp.wrench, _wrench(0.6)) and d.submit(tp.wrench, _wrench(0.7))
+    assert not d.submit(tp.wrench, _wrench(0.8))                 # the fourth waiting input: dropped
+    v = d.values()
+    assert (v["inputs_received"], v["inputs_pending"], v["inputs_dropped"], v["rejected_total"]) == (8, 3, 1, 4)
+    assert (v["rejected_unknown_handle"], v["rejected_unknown_collider"], v["rejected_non_finite"],
+            v["rejected_apply_error"]) == (1, 1, 1, 1)
+    assert _counted(d)
+    for _ in range(50):                                          # to t = 0.56: the first is applied
+        d.advance()
+    assert d.values()["inputs_applied"] == 1 and _counted(d)
+    d.reset("service")                                           # the other two are discarded
+    v = d.values()
+    assert v["inputs_cleared"] == 2 and v["inputs_pending"] == 0 and _counted(d)
+
+
+def test_inputs_apply_at_their_stamps_like_the_timeline_player(scene):
+    d, _ = _driver(scene)
+    tp = d.topics
+    d.submit(tp.wrench, _wrench(0.3, fz=0.0))                    # out of order: the later one first
+    d.submit(tp.wrench, _wrench(0.1, fz=-20.0))
+    for _ in range(45):
+        d.advance()
+    sim = Simulator(scene)
+    player = TimelinePlayer([{"t": 0.1, "topic": "wrench", "frame_id": "tip", "force": [0, 0, -20]},
+                             {"t": 0.3, "topic": "wrench", "frame_id": "tip", "force": [0, 0, 0]}])
+    for _ in range(45):
+        player.apply_due(sim)
+        sim.step()
+    np.testing.assert_array_equal(d.sim.surface_positions(), sim.surface_positions())
+
+
+def test_a_failed_step_resets_publishes_nothing_of_it_and_is_recorded(scene, monkeypatch):
+    d, out = _driver(scene)
+    for _ in range(3):
+        d.advance()
+    real = d.sim.model.step
+    monkeypatch.setattr(d.sim.model, "step", lambda *a, **k: (_ for _ in ()).throw(np.linalg.LinAlgError("x")))
+    n = len(out)
+    assert d.advance() is False
+    monkeypatch.setattr(d.sim.model, "step", real)
+    assert d.sim.time == 0.0 and d.stability == "failed" and d.failures == 1
+    after = out[n:]
+    tp = d.topics
+    assert after[0][0].topic == tp.reset and after[0][2]                    # the reset, as an input
+    assert convert.decode(after[0][0].data, "std_msgs/msg/Header").frame_id == "failure"
+    assert {o.stamp_s for o, _, is_input in after[1:]} == {0.0}              # then the state at t = 0
+    assert d.advance() and d.sim.step_count == 1
+
+
+def test_a_run_with_a_failed_step_replays_bit_for_bit(tmp_path, monkeypatch):
+    """The run fails at its 10th step and resets; the replay fails at the same step by
+    itself (it skips the recorded 'failure' reset) and reproduces every output."""
+    from mdss_ros.record.replay import RunRecording, replay
+    from mdss_ros.simulator import Simulator as Sim
+    real = Sim.step
+    calls = {}
+
+    def flaky(self):
+        n = calls[id(self)] = calls.get(id(self), 0) + 1
+        if n == 10:
+            raise np.linalg.LinAlgError("the 10th step of this simulator fails")
+        return real(self)
+    monkeypatch.setattr(Sim, "step", flaky)
+    rec = RunRecording(mcap=tmp_path / "run.mcap", out=lambda text: None)
+    sim = rec.build("cantilever", OVERRIDES)
+    rec.start(sim)
+    oks = [rec.advance()[1] for _ in range(30)]
+    rec.finish()
+    assert oks.count(False) == 1 and rec.driver.failures == 1
+    result = replay(tmp_path / "run.mcap", check=True, out=lambda text: None)
+    assert result.ok, (result.first_mismatch, result.missing, result.extra)
+    assert result.compared > 100
