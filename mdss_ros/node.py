@@ -47,11 +47,22 @@ mdss_ros.ros.convert), and decides *when*:
     and clock_lag (master time minus sim time, follow) or clock_steps_pending
     (lockstep). follow warns when clock_lag exceeds FOLLOW_LAG_WARN_S. The rule "how
     many steps fit before T" is `steps_before`, the tick rules are `ExternalClock`.
+- The loop itself (inputs by stamp, the guarded step, outputs by schedule, resets,
+  failures) is mdss_ros.ros.driver.Driver, the same one `mdss run --mcap` and `mdss
+  replay` use; this module adds the ROS graph, the clock modes and the wall-clock parts.
 - Inputs take effect at a defined step, so a run is reproducible from its inputs. An
   input stamped s (sim time, from /clock) is applied just before the step that starts
   at the first sim time t with s <= t + dt/2 (stamps round to the nearest step, as
   mdss_ros.timeline.TimelinePlayer does); an unstamped one (stamp 0) before the next
   step; inputs due at the same step are applied in stamp order, then arrival order.
+  The input subscriptions are raw and live on an internal node `<name>_inputs` that a
+  thread of its own spins, so messages are taken off the wire while a step computes:
+  each is decoded and checked at once (a bad one is counted by kind) and waits in the
+  driver's bounded queue (input_queue_limit; a message that finds it full is dropped
+  and counted in inputs_dropped, never lost silently).
+- Runtime changes of the parameters a run depends on (friction, output rates, wrench
+  timeout, input limits, world_frame) are applied between steps and recorded as inputs
+  (~/parameter_events), so a recording replays bit for bit across them.
 - Outputs are due on a grid of their own rate in sim time: step k publishes an output
   of rate r when floor(k dt r) changed. At real_time_factor 1 that is wall time too; a
   rate >= 1/physics_dt publishes every step, 0 turns an output off. The state at t = 0
@@ -429,10 +440,9 @@ class MdssNode(Node):
                 raise StartupError(f"parameters colliders.{c}.friction_*: {err}") from err
 
     def _set_friction(self, collider):
-        """Apply the collider's friction parameters to the simulator, and to its scene, so a
-        reset keeps them and a recording started after this replays them. (A change at
-        runtime is not an input of the recording: `mdss replay --check` reports the
-        outputs after it as different.)"""
+        """Apply the collider's launch-time friction parameters to the simulator, and to its
+        scene, so a reset keeps them and a recording's scene holds them. (A change at runtime
+        goes through Driver.set_parameters, which does the same and records it.)"""
         mu_s = self._number(f"colliders.{collider}.friction_static")
         mu_k = self._number(f"colliders.{collider}.friction_kinetic")
         self.sim.set_collider_friction(collider, mu_s, mu_k)
@@ -479,20 +489,18 @@ class MdssNode(Node):
 
     def _apply_parameters(self, params):
         names = {p.name for p in params}
+        # What the run depends on goes through the driver, which records the change as an
+        # input (a ParameterEvent), so `mdss replay` applies it at the same step.
+        run = {}
         for collider in {self._friction_parameter(n)[0] for n in names if self._friction_parameter(n)}:
             # While they are declared one by one, the pair is applied once both exist.
-            if hasattr(self, "sim") and self.has_parameter(f"colliders.{collider}.friction_kinetic"):
-                self._set_friction(collider)
-        if names & {"max_force", "max_torque", "max_position", "max_input_age", "max_input_lead",
-                    "max_point_forces"}:
-            self.driver.limits = self._read_limits()
-        if "wrench_timeout_s" in names:
-            self.driver.wrench_timeout_s = self._p("wrench_timeout_s")
-        if "world_frame" in names:
-            self.driver.world_frame = self.driver.outputs.frame = self._p("world_frame")
-        for rate in _RATES:
-            if rate in names:
-                setattr(self.driver.outputs.rates, rate[:-len("_publish_rate")], self._p(rate))
+            if hasattr(self, "driver") and self.has_parameter(f"colliders.{collider}.friction_kinetic"):
+                for part in ("static", "kinetic"):
+                    run[f"colliders.{collider}.friction_{part}"] = self._number(f"colliders.{collider}.friction_{part}")
+        for name in names & (set(Driver.PARAMETERS) - {"colliders"}):
+            run[name] = self._p(name)
+        if run and hasattr(self, "driver"):
+            self.driver.set_parameters(run)
         if "real_time_factor" in names and self._step_timer is not None:   # follow, lockstep: ignored
             self._step_timer.timer_period_ns = self._step_period_ns()
             if not self._paused:

@@ -131,7 +131,8 @@ def test_unwritable_mcap_path_is_reported_and_the_node_keeps_stepping(tmp_path):
 @pytest.mark.claims
 def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
     """A node records a run fed from another process: a wrench that wrench_timeout_s
-    clears, a collider pressed into the beam, ~/clear_forces and ~/reset_simulation.
+    clears, a collider pressed into the beam, its friction and the points rate changed at
+    runtime (parameters), ~/clear_forces and ~/reset_simulation.
     `mdss replay --check` reproduces every output bit for bit; the node's /diagnostics
     (wall-clock timer) are named as not compared."""
     from mdss_ros.record.replay import replay
@@ -145,6 +146,9 @@ def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
         probe.pub("/mdss/colliders/ball/pose", "geometry_msgs/msg/PoseStamped", _pose((0.5, 0.05, 0.12)))
         probe.diagnostics(where={"inputs_applied": {"ge": 2}}, timeout=30)
         probe.wait(CLOCK, new=True, timeout=30)
+        probe.set_params("/mdss", {"colliders.ball.friction_static": 0.8, "colliders.ball.friction_kinetic": 0.5,
+                                   "points_publish_rate": 45.0})
+        probe.wait(CLOCK, count=10, new=True, timeout=30)
         probe.call("/mdss/clear_forces", TRIGGER)
         probe.call("/mdss/reset_simulation", EMPTY)
         probe.pub("/mdss/wrench", "geometry_msgs/msg/WrenchStamped", _wrench("tip", (0, 5, 0)))
@@ -155,6 +159,7 @@ def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
     messages, _ = _mcap_ros2_messages(mcap)
     counts = Counter(m[0] for m in messages)
     assert counts["/mdss/reset_simulation/request"] == 1 and counts["/mdss/clear_forces/request"] == 1, counts
+    assert counts["/mdss/parameter_events"] >= 1, counts              # the runtime changes, as inputs
     assert counts["/mdss/domain_transforms"] == 2 * counts["/mdss/domain_poses"], counts
     assert counts["/mdss/contacts"] > 0, counts                       # the collider did touch
     log_times = [m[1] for m in messages]
@@ -164,5 +169,5 @@ def test_replay_check_reproduces_a_node_recording_with_a_reset(tmp_path):
     assert res.ok, (res.first_mismatch, res.missing, res.extra)
     assert res.compared == sum(n for t, n in counts.items() if t not in (
         "/diagnostics", "/mdss/wrench", "/mdss/colliders/ball/pose", "/mdss/clear_forces/request",
-        "/mdss/reset_simulation/request"))
+        "/mdss/reset_simulation/request", "/mdss/parameter_events"))
     assert res.not_compared["/diagnostics"][0] == counts["/diagnostics"]

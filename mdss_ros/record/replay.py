@@ -296,7 +296,8 @@ def _digest(topic, data):
     return hashlib.sha256(data).digest()
 
 
-_INPUT_LEAVES = ("/wrench", "/point_forces", "/clear_forces/request", "/reset_simulation/request", "/pose")
+_INPUT_LEAVES = ("/wrench", "/point_forces", "/clear_forces/request", "/reset_simulation/request", "/pose",
+                 "/parameter_events")
 
 
 def read_recording(path, topics=None):

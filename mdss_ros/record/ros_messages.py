@@ -77,6 +77,7 @@ class Topics:
         "point_forces": "sensor_msgs/msg/PointCloud2",
         "clear_forces": "std_msgs/msg/Header",
         "reset": "std_msgs/msg/Header",
+        "parameters": "rcl_interfaces/msg/ParameterEvent",
         "collider_pose": "geometry_msgs/msg/PoseStamped",
         "topology": "shape_msgs/msg/Mesh",
         "points": "sensor_msgs/msg/PointCloud2",
@@ -95,8 +96,10 @@ class Topics:
     QOS = {"topology": (1, True), "clock": (1, True), "mesh": (2, False), "marker": (2, False),
            "tf": (100, False)}
     # reset: the ~/reset_simulation service call, recorded as a Header stamped with the sim
-    # time it ended, so a replay resets where the run did.
-    INPUTS = ("wrench", "point_forces", "clear_forces", "collider_pose", "reset")
+    # time it ended, so a replay resets where the run did. parameters: a runtime change of
+    # the node's parameters that the run depends on (friction, output rates, wrench
+    # timeout, input limits), recorded as the ParameterEvent rclpy would announce.
+    INPUTS = ("wrench", "point_forces", "clear_forces", "collider_pose", "reset", "parameters")
 
     def __init__(self, namespace=NAMESPACE):
         ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
@@ -108,6 +111,7 @@ class Topics:
         self.point_forces = f"{ns}/point_forces"
         self.clear_forces = f"{ns}/clear_forces/request"
         self.reset = f"{ns}/reset_simulation/request"
+        self.parameters = f"{ns}/parameter_events"
         self.topology = f"{ns}/surface/topology"
         self.points = f"{ns}/surface/points"
         self.mesh = f"{ns}/surface/mesh"
@@ -131,7 +135,7 @@ class Topics:
 
     def kind(self, topic):
         """The kind of a topic name (a key of TYPES), or None for a topic not of this node."""
-        for k in ("wrench", "point_forces", "clear_forces", "reset", "topology", "points", "mesh", "marker",
+        for k in ("wrench", "point_forces", "clear_forces", "reset", "parameters", "topology", "points", "mesh", "marker",
                   "domain_poses", "domain_transforms", "contacts", "clock", "diagnostics", "tf"):
             if getattr(self, k) == topic:
                 return k
@@ -335,7 +339,8 @@ def event_messages(ev, topics=None, world_frame=WORLD_FRAME):
 
 def input_stamp(topics, topic, msg):
     """Sim time (s) an input is stamped with (0: unstamped)."""
-    stamp = msg.stamp if topics.kind(topic) in ("clear_forces", "reset") else msg.header.stamp
+    kind = topics.kind(topic)
+    stamp = msg.stamp if kind in ("clear_forces", "reset", "parameters") else msg.header.stamp
     return seconds_of(stamp)
 
 

@@ -363,3 +363,36 @@ def diagnostics(t, name, hardware_id, level, message, values):
     status = DiagnosticStatus(level=_LEVELS[level], name=name, message=message, hardware_id=hardware_id,
                               values=[KeyValue(key=k, value=_text(v)) for k, v in values.items()])
     return DiagnosticArray(header=header(t, ""), status=[status])
+
+
+# --------------------------------------------------------------------- parameters
+_PARAMETER_TYPES = {bool: 1, int: 2, float: 3, str: 4}      # rcl_interfaces/ParameterType
+_PARAMETER_FIELDS = {1: "bool_value", 2: "integer_value", 3: "double_value", 4: "string_value"}
+
+
+def parameter_event(t, node, values):
+    """rcl_interfaces/ParameterEvent announcing `values` ({name: bool, int, float or str})
+    as changed parameters of node (its fully qualified name), stamped t."""
+    ParameterEvent, Parameter, ParameterValue = (_T[f"rcl_interfaces/msg/{n}"] for n in
+                                                 ("ParameterEvent", "Parameter", "ParameterValue"))
+    changed = []
+    for name, value in values.items():
+        kind = _PARAMETER_TYPES[type(value)]
+        fields = {"bool_value": False, "integer_value": 0, "double_value": 0.0, "string_value": "",
+                  "byte_array_value": np.zeros(0, np.uint8), "bool_array_value": np.zeros(0, bool),
+                  "integer_array_value": np.zeros(0, np.int64), "double_array_value": np.zeros(0),
+                  "string_array_value": []}
+        fields[_PARAMETER_FIELDS[kind]] = value
+        changed.append(Parameter(name=name, value=ParameterValue(type=kind, **fields)))
+    return ParameterEvent(stamp=stamp(t), node=node, new_parameters=[], changed_parameters=changed,
+                          deleted_parameters=[])
+
+
+def parameter_values(event):
+    """{name: value} of a ParameterEvent's new and changed scalar parameters."""
+    out = {}
+    for p in list(event.new_parameters) + list(event.changed_parameters):
+        field = _PARAMETER_FIELDS.get(p.value.type)
+        if field is not None:
+            out[p.name] = getattr(p.value, field)
+    return out

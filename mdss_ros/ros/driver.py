@@ -92,6 +92,12 @@ class Driver:
     that put a collider inside the body.
     """
 
+    #: runtime parameters (the node's names) a run depends on; set_parameters records them.
+    #: "colliders" stands for colliders.<name>.friction_static and _kinetic.
+    PARAMETERS = ("points_publish_rate", "mesh_publish_rate", "marker_publish_rate", "pose_publish_rate",
+                  "wrench_timeout_s", "world_frame", "max_force", "max_torque", "max_position",
+                  "max_input_age", "max_input_lead", "max_point_forces", "colliders")
+
     def __init__(self, sim, topics, world_frame, rates, emit, limits=None, wrench_timeout_s=0.0,
                  emit_inputs=True, report=None, rerun=None, queue_limit=DEFAULT_QUEUE_LIMIT,
                  replay_failures=True, on_collider_inside=None):
@@ -197,6 +203,8 @@ class Driver:
             return (name,) + tuple(validate.pose((p.x, p.y, p.z), (o.x, o.y, o.z, o.w), self.limits))
         if kind == "reset":
             return msg.frame_id or "service"
+        if kind == "parameters":
+            return convert.parameter_values(msg)
         return None                                          # clear_forces
 
     def _reject(self, err, topic):
@@ -274,7 +282,42 @@ class Driver:
         if kind == "reset":
             self._reset(c, record=self.emit_inputs, clear_queue=False)
             return f"reset ({c})"
+        if kind == "parameters":
+            self._apply_parameters(c)
+            return f"parameters {c}"
         raise ValueError(f"unknown input kind {kind!r}")
+
+    def set_parameters(self, values):
+        """Runtime parameter values ({node parameter name: value}, names of PARAMETERS) the
+        run depends on: applied now, between steps, and recorded as an input (a
+        rcl_interfaces/ParameterEvent), so a replay applies them at the same step.
+        ValueError (nothing applied) for a bad friction pair."""
+        from ..record.ros_messages import cdr_bytes
+        self._apply_parameters(values)
+        if self.emit_inputs:
+            self._emit_input(self.topics.parameters,
+                             cdr_bytes(convert.parameter_event(self.sim.time, self.topics.namespace, values)))
+
+    def _apply_parameters(self, values):
+        from dataclasses import replace
+        friction = {}
+        for name, value in values.items():
+            if name.startswith("colliders.") and name.rpartition(".")[2] in ("friction_static", "friction_kinetic"):
+                collider, _, leaf = name[len("colliders."):].rpartition(".")
+                friction.setdefault(collider, dict(zip(("static", "kinetic"), self.sim.colliders[collider].friction)))
+                friction[collider][leaf[len("friction_"):]] = float(value)
+            elif name.endswith("_publish_rate"):
+                setattr(self.outputs.rates, name[:-len("_publish_rate")], float(value))
+            elif name == "wrench_timeout_s":
+                self.wrench_timeout_s = float(value)
+            elif name == "world_frame":
+                self.world_frame = self.outputs.frame = value
+            elif name in Limits.__dataclass_fields__:
+                self.limits = replace(self.limits, **{name: value})
+        for collider, mu in friction.items():
+            self.sim.set_collider_friction(collider, mu["static"], mu["kinetic"])
+            # in the scene too, so a reset (which rebuilds colliders from it) keeps them
+            self.sim.scene.data["colliders"][collider]["friction"] = dict(mu)
 
     def _expire_wrenches(self):
         timeout = self.wrench_timeout_s
