@@ -153,7 +153,12 @@ _RERUN_MODES = ("off", "file", "spawn", "serve")
 CLOCK_MODES = ("source", "follow", "lockstep")
 CLOCK_EPS_S = 1e-8          # follow: a step fits before master time T if it ends at or before T + this
 FOLLOW_LAG_WARN_S = 0.25    # follow: /diagnostics warns when the sim time lags the master by more
-INPUT_DEPTH = 1000          # DDS history per input topic between two subscription callbacks
+# Input subscriptions keep every sample until the inputs thread takes it (KEEP_ALL): with
+# a reliable publisher DDS then pushes back instead of overwriting. KEEP_LAST 1000 lost
+# 2,018 of 120,000 wrenches at 4 x 1 kHz on this loaded 2-core machine (stress_node.py
+# soak), uncounted: a reader history overwrites without a trace.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE)
 
 
 class StartupError(MdssError):
@@ -581,10 +586,9 @@ class MdssNode(Node):
         # they are taken off the wire while a step computes and wait in the driver's
         # bounded, counted queue instead of DDS's. (A callback group of this node under a
         # MultiThreadedExecutor was tried: rclpy drops a guard condition triggered while
-        # its group is busy, so the follow mode's steps stalled until the next tick.) The
-        # DDS history still holds INPUT_DEPTH messages per topic between two callbacks;
-        # past it DDS would overwrite them uncounted (measured before this: 71-message
-        # bursts lost 32 of 142 at depth 50 while the subscriptions waited for the step).
+        # its group is busy, so the follow mode's steps stalled until the next tick.) DDS
+        # keeps every sample until it is taken (INPUT_QOS; measured before this: 71-message
+        # bursts lost 32 of 142 at KEEP_LAST 50 while the subscriptions waited for the step).
         self._inputs_node = Node(f"{self.get_name()}_inputs", namespace=self.get_namespace(), context=self.context,
                                  use_global_arguments=False, start_parameter_services=False,
                                  enable_rosout=False)
@@ -626,7 +630,7 @@ class MdssNode(Node):
 
     def _input_subscription(self, msg_type, topic):
         return self._inputs_node.create_subscription(msg_type, topic, lambda data, t=topic: self.driver.submit(t, data),
-                                                     _qos(INPUT_DEPTH), raw=True)
+                                                     INPUT_QOS, raw=True)
 
     def start_inputs(self):
         """Start the thread that spins the inputs node (main() does; in-process users that

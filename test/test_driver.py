@@ -50,7 +50,7 @@ def test_every_input_is_counted_once_and_a_full_queue_drops_with_a_count(scene):
     v = d.values()
     assert (v["inputs_received"], v["inputs_pending"], v["inputs_dropped"], v["rejected_total"]) == (8, 3, 1, 4)
     assert (v["rejected_unknown_handle"], v["rejected_unknown_collider"], v["rejected_non_finite"],
-            v["rejected_apply_error"]) == (1, 1, 1, 1)
+            v["rejected_malformed"]) == (1, 1, 1, 1)
     assert _counted(d)
     for _ in range(50):                                          # to t = 0.56: the first is applied
         d.advance()
@@ -58,6 +58,17 @@ def test_every_input_is_counted_once_and_a_full_queue_drops_with_a_count(scene):
     d.reset("service")                                           # the other two are discarded
     v = d.values()
     assert v["inputs_cleared"] == 2 and v["inputs_pending"] == 0 and _counted(d)
+
+
+def test_an_empty_point_force_cloud_is_applied_as_nothing(scene):
+    """A cloud of 0 points (height or width 0) is a no-op, not a crash (it once raised
+    in the subscription and went uncounted: stress_node.py fuzz)."""
+    d, _ = _driver(scene)
+    empty = np.zeros(0, dtype=[(f, "<f4") for f in ("x", "y", "z", "fx", "fy", "fz")])
+    assert d.submit(d.topics.point_forces, cdr_bytes(convert.cloud(0.0, "world", empty)))
+    d.advance()
+    v = d.values()
+    assert v["inputs_applied"] == 1 and v["rejected_total"] == 0 and _counted(d)
 
 
 def test_inputs_apply_at_their_stamps_like_the_timeline_player(scene):

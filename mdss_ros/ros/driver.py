@@ -158,11 +158,17 @@ class Driver:
                 try:
                     msg = decode_input(self.topics, topic, data)
                 except Exception as err:  # noqa: BLE001 - any malformed CDR is a rejection, not a crash
-                    raise InputRejected("bad_cloud" if kind == "point_forces" else "apply_error",
-                                        f"the message does not decode: {type(err).__name__}: {err}") from err
+                    raise InputRejected("malformed", f"the message does not decode: {type(err).__name__}: {err}") \
+                        from err
             else:
                 msg, data = data, cdr_bytes(data)
-            command = self._check(kind, topic, msg)
+            try:
+                command = self._check(kind, topic, msg)
+            except InputRejected:
+                raise
+            except Exception as err:  # noqa: BLE001 - a message no check foresaw is still counted
+                raise InputRejected("malformed", f"the message could not be checked: {type(err).__name__}: {err}") \
+                    from err
             if due_s is None:
                 stamp = validate.due_time(input_stamp(self.topics, topic, msg), self.sim.time, self.limits)
                 due = None if stamp is None else self.offset + stamp

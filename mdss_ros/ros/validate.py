@@ -16,7 +16,7 @@ import numpy as np
 
 #: Rejection kinds, in the order /diagnostics lists their counters.
 KINDS = ("non_finite", "magnitude", "unknown_handle", "unknown_collider", "bad_cloud",
-         "bad_frame", "bad_quaternion", "stamp_past", "stamp_future", "apply_error")
+         "bad_frame", "bad_quaternion", "stamp_past", "stamp_future", "malformed", "apply_error")
 
 # sensor_msgs/PointField datatypes -> numpy (little-endian; big-endian swaps the byte order).
 _DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -51,7 +51,8 @@ def vector(values, what, limit, limit_name):
     v = np.asarray(values, dtype=np.float64)
     if not np.all(np.isfinite(v)):
         raise InputRejected("non_finite", f"{what} {v.tolist()} is not finite")
-    n = float(np.linalg.norm(v))
+    with np.errstate(over="ignore"):            # |v| of 1e300 is inf: rejected below, no warning
+        n = float(np.linalg.norm(v))
     if n > limit:
         raise InputRejected("magnitude", f"|{what}| = {n:.4g} exceeds {limit_name} = {limit:.4g}")
     return v
@@ -80,7 +81,8 @@ def pose(position, orientation, limits):
     q = np.asarray(orientation, dtype=np.float64)
     if not np.all(np.isfinite(q)):
         raise InputRejected("non_finite", f"orientation {q.tolist()} is not finite")
-    n = float(np.linalg.norm(q))
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(q))
     if not 0.5 < n < 2.0:
         raise InputRejected("bad_quaternion", f"orientation {q.tolist()} has norm {n:.4g}, "
                                               f"not a rotation (x y z w with norm 1)")
@@ -153,6 +155,8 @@ def point_forces(msg, world_frame, limits):
     p = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
     f = np.stack([cols["fx"], cols["fy"], cols["fz"]], axis=1)
     d = cols.get("duration", np.zeros(n))
+    if n == 0:                                  # an empty cloud asks for nothing: a no-op
+        return p.reshape(0, 3), f.reshape(0, 3), d.reshape(0)
     for what, a in (("point", p), ("force", f), ("duration", d)):
         bad = ~np.isfinite(a).reshape(n, -1).all(axis=1)
         if bad.any():
@@ -161,8 +165,9 @@ def point_forces(msg, world_frame, limits):
                                               f"({int(bad.sum())} of {n} points)")
     for what, a, lim, name in (("point", p, limits.max_position, "max_position"),
                                ("force", f, limits.max_force, "max_force")):
-        norms = np.linalg.norm(a, axis=1) if n else np.zeros(0)
-        if n and norms.max() > lim:
+        with np.errstate(over="ignore"):
+            norms = np.linalg.norm(a, axis=1)
+        if norms.max() > lim:
             i = int(np.argmax(norms))
             raise InputRejected("magnitude", f"|{what}| of point {i} = {norms[i]:.4g} exceeds {name} = {lim:.4g}")
     return p, f, d
