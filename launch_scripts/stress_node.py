@@ -46,7 +46,7 @@ outputs (watcher), nor, with --mcap, in the node's recording (mcap + mcap_ros2).
 soak. The node runs SCENE at real_time_factor 1 with the default output rates; P
 publisher processes each send valid wrenches on ~/wrench at R Hz for S s (a schedule
 on the monotonic clock; catch-up is capped at 50 ms worth, so a starved publisher sends
-less and says so: `sent` is what it published), stamped 0 or with the latest /clock.
+less and says so: `sent` is what it published), unstamped (applied at the next step).
 Publisher 0 also sends one wrench in 100 stamped with the next sim time (/clock + dt) and
 measures the wall time from publishing it to the /clock that reaches stamp + dt (the step
 that applied it has ended), as bench_node.py latency does. Measured: node RSS (start at
@@ -930,8 +930,8 @@ def soak_pub_main(cfg, out):
     handle = cfg["handle"]
     rng = np.random.default_rng(index)
     fz = -10.0
-    msg = WrenchStamped()
-    msg.header.frame_id = handle
+    from mdss_ros.record.ros_messages import cdr_bytes
+    from mdss_ros.ros.convert import wrench_stamped
     sent, skipped, failed, last_error = 0, 0, 0, ""
     tried = 0                         # messages of the schedule taken: sent + failed
     t0 = time.monotonic()
@@ -951,22 +951,18 @@ def soak_pub_main(cfg, out):
             with lock:
                 clock = state["clock"]
             fz = float(np.clip(fz + rng.normal(0, 0.5), -20.0, 0.0))
-            msg.wrench.force.x = msg.wrench.force.y = 0.0
-            msg.wrench.force.z = fz
             probe = every and index == 0 and tried % every == 0
-            if probe:
-                t = clock + dt                       # the next sim time: applied by the step starting there
-                msg.wrench.force.x = 1e-3            # distinctive
-            elif tried % 2:
-                t = clock                            # the current sim time: the next step
-            else:
-                t = 0.0                              # unstamped: the next step
-            ns = int(round(t * 1e9))
-            msg.header.stamp.sec, msg.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+            # Unstamped (the next step), as a controller streaming wrenches sends them; the
+            # latency probes carry the next sim time. (Stamping with this process's view of
+            # /clock was tried: a publisher starved of CPU saw /clock over 1 s late, and
+            # the node rejected 44 % as stamp_past.) CDR bytes, built with rosbags: an
+            # rclpy message object costs more to publish, and the publishers must keep up.
+            t = clock + dt if probe else 0.0
+            data = cdr_bytes(wrench_stamped(t, handle, [1e-3 if probe else 0.0, 0.0, fz, 0.0, 0.0, 0.0]))
             sample = {"wall": time.time(), "stamp": t, "at_stamp": None, "done": None}
             tried += 1
             try:
-                pub.publish(msg)
+                pub.publish(data)
             except Exception as err:  # noqa: BLE001 - a full KEEP_ALL history: not sent, counted
                 failed += 1
                 last_error = f"{type(err).__name__}: {err}"

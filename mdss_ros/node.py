@@ -8,11 +8,13 @@ calls (through mdss_ros.ros.validate) and Simulator arrays into messages (throug
 mdss_ros.ros.convert), and decides *when*:
 
 - Stepping. A steady-clock timer fires every physics_dt / real_time_factor seconds of
-  wall time (real_time_factor <= 0: as fast as possible); each firing is one
-  Simulator.step() followed by /clock and the outputs that are due, run after the
-  input messages that arrived meanwhile. A late step is not made up for: under load
-  the measured real-time factor drops instead. That is clock_mode `source` (the
-  default); the two other modes step on an external clock instead (below).
+  wall time (real_time_factor <= 0: as fast as possible); a firing takes the steps the
+  wall-clock schedule asks for (WallPace), each a Simulator.step() followed by /clock and
+  the outputs that are due, one per executor cycle. A step that came late is made up
+  for by the next firings, so sim time keeps to wall time through a hiccup; a node more
+  than WallPace.CATCH_UP_S behind gives that lag up (/diagnostics pace_slips) and the
+  measured real-time factor drops. That is clock_mode `source` (the default); the two
+  other modes step on an external clock instead (below).
 - Clock modes (parameter clock_mode, read-only). In `follow` and `lockstep` the node
   creates no step timer, ignores real_time_factor and publishes no /clock (an MCAP
   recording still gets a /clock record of the sim time every step, so `mdss replay`
@@ -284,6 +286,39 @@ class ExternalClock:
         return self.master - sim_time
 
 
+class WallPace:
+    """clock_mode source: how many steps are due so that sim time keeps to wall time x
+    real_time_factor, without ROS (the node's step timer asks it at every firing).
+
+    start(now, step_count) anchors the schedule where the timer (re)starts: step k0 + n is
+    due n timer periods later. Due counts round at half a period, so timer jitter under
+    half a period neither skips nor doubles a step; a firing that comes late (a slow step,
+    the GIL held by the inputs thread, a loaded machine) finds two or more due and the node
+    catches up, one step per executor cycle. Behind by more than CATCH_UP_S of sim time,
+    the node gives the lag up instead of racing: it re-anchors and counts a slip.
+    """
+
+    CATCH_UP_S = 0.25
+
+    def __init__(self):
+        self.anchor = (0.0, 0)
+        self.slips = 0
+
+    def start(self, now, step_count):
+        self.anchor = (float(now), int(step_count))
+
+    def steps_due(self, now, step_count, dt, rtf):
+        if rtf <= 0:                      # as fast as possible: one step per timer firing
+            return 1
+        wall0, k0 = self.anchor
+        behind = k0 + math.floor((now - wall0) * rtf / dt + 0.5) - step_count
+        if behind * dt > self.CATCH_UP_S:
+            self.slips += 1
+            self.start(now - dt / rtf, step_count)        # the step now is the new schedule's first
+            return 1
+        return max(behind, 0)
+
+
 class MdssNode(Node):
     """The simulation node. Builds the simulator (the slow part) in the constructor."""
 
@@ -333,6 +368,7 @@ class MdssNode(Node):
         self._warned = {}
         self._cycle_ms = deque(maxlen=100000)
         self._dropped_seen = 0                # inputs_dropped at the last /diagnostics
+        self._pace = WallPace()               # source: the wall-clock schedule of the steps
         self._window = (time.monotonic(), self.sim.time)
         self._traps = {}
         self._inputs_thread, self._inputs_stop = None, threading.Event()
@@ -350,6 +386,8 @@ class MdssNode(Node):
         self.domain_names = self.driver.outputs.domain_names
         self.surface_ids = self.driver.outputs.surface_ids
         self.driver.start()
+        if self._step_timer is not None and not self._paused:
+            self._restart_timer()              # the schedule starts now, not when the timer was made
         pace = (f"at real_time_factor {self._p('real_time_factor'):g}" if self._master is None else
                 f"in clock_mode {self._master.mode} ("
                 + ("stepping to follow /clock" if self._master.mode == "follow" else
@@ -509,7 +547,7 @@ class MdssNode(Node):
         if "real_time_factor" in names and self._step_timer is not None:   # follow, lockstep: ignored
             self._step_timer.timer_period_ns = self._step_period_ns()
             if not self._paused:
-                self._step_timer.reset()
+                self._restart_timer()
             self._window = (time.monotonic(), self.sim.time)
         if "diagnostics_rate" in names:
             self._diag_timer.timer_period_ns = int(1e9 / self._p("diagnostics_rate"))
@@ -722,7 +760,13 @@ class MdssNode(Node):
         if self._paused:
             return
         if self._master is None:
-            self.advance()
+            # source: the steps the wall clock asks for, one per executor cycle (the guard
+            # is triggered again while more are due, so services run in between)
+            rtf = self._p("real_time_factor")
+            if self._pace.steps_due(time.monotonic(), self.sim.step_count, self.sim.dt, rtf) > 0:
+                self.advance()
+                if rtf > 0 and self._pace.steps_due(time.monotonic(), self.sim.step_count, self.sim.dt, rtf) > 0:
+                    self._step_guard.trigger()
             return
         # follow, lockstep: one step per callback; the guard is triggered again while more
         # are due, so ticks and service calls that arrive meanwhile are taken between steps.
@@ -758,6 +802,13 @@ class MdssNode(Node):
     def _reset(self, reason):
         self.driver.reset(reason)
         self._window = (time.monotonic(), self.sim.time)
+        if self._step_timer is not None and not self._paused:
+            self._restart_timer()
+
+    def _restart_timer(self):
+        """Restart the source-mode step timer and anchor the wall-clock schedule there."""
+        self._step_timer.reset()
+        self._pace.start(time.monotonic(), self.sim.step_count)
 
     def _emit(self, out, log_time_ns, is_input):
         """The driver's sink: outputs are published (bytes as built) and recorded; inputs,
@@ -856,7 +907,7 @@ class MdssNode(Node):
             self._paused = False
             self._window = (time.monotonic(), self.sim.time)
             if self._step_timer is not None:
-                self._step_timer.reset()
+                self._restart_timer()
             self._kick_clock()             # follow: catch up with the master
             self.get_logger().info(f"physics running from t = {self.sim.time:.6g} s")
         return response
@@ -918,6 +969,8 @@ class MdssNode(Node):
         })
         stability, last_failure = values["stability"], values["last_failure"]
         clock, lag = self._master, 0.0
+        if clock is None:
+            values["pace_slips"] = self._pace.slips
         if clock is not None:
             values.update({"clock_master_time": clock.master, "clock_ticks": clock.ticks,
                            "clock_jumps_back": clock.jumps_back})

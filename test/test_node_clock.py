@@ -353,3 +353,23 @@ def test_bad_clock_mode_is_a_startup_error(tmp_path, ros_env):
         assert word.wait(60) == 2 and number.wait(60) == 2
     assert "clock_mode must be one of source, follow, lockstep, got 'realtime'" in word.text
     assert "clock_mode" in number.text and "cannot start" in number.text
+
+
+def test_wall_pace_keeps_sim_time_on_wall_time_through_jitter_and_gives_up_a_long_stall():
+    from mdss_ros.node import WallPace
+    dt, pace, k = 0.01, WallPace(), 0
+    pace.start(100.0, 0)
+    rng = np.random.default_rng(0)
+    for n in range(1, 200):                       # firings with jitter under half a period
+        now = 100.0 + n * dt + rng.uniform(0, 0.45 * dt)
+        due = pace.steps_due(now, k, dt, 1.0)
+        assert due == 1, (n, due)                  # never skips, never doubles
+        k += due
+    now = 100.0 + 205 * dt                         # a 6-period hiccup: caught up, not lost
+    assert pace.steps_due(now, k, dt, 1.0) == 6
+    k += 6
+    assert pace.steps_due(now + 0.5, k, dt, 1.0) == 1 and pace.slips == 1      # 0.5 s behind: given up
+    assert pace.steps_due(now + 0.5 + dt, k + 1, dt, 1.0) == 1                  # on a new anchor
+    assert pace.steps_due(now, k, dt, 0.0) == 1    # as fast as possible: one per firing
+    pace.start(100.0, 0)
+    assert pace.steps_due(100.0 + 10 * dt, 0, dt, 2.0) == 20                     # real_time_factor 2

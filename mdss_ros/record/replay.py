@@ -198,8 +198,8 @@ class RunRecording:
         self.driver = Driver(sim, self.topics, self.world_frame, self.rates, self._write, rerun=self.rerun,
                              report=self._report, queue_limit=None)
         for item in timeline_inputs(sim.scene["timeline"], self.topics, self.world_frame):
-            self.driver.submit(item.topic, item.data, due_s=item.due_s)
-            self._events.append((item.due_s, item.event))
+            if self.driver.submit(item.topic, item.data, due_s=item.due_s):   # a rejected one is reported now
+                self._events.append((item.due_s, item.event))
         self.driver.start()
 
     def _report(self, level, text, key=None):
