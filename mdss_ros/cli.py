@@ -39,30 +39,28 @@ def _make_sim(args):
 
 def cmd_run(args):
     import signal
-    from .timeline import TimelinePlayer
-    rec = None
-    if args.mcap or args.rrd:
-        # Recording (mdss_ros.record.replay): files are opened before the model build, so a
-        # bad path fails at once; inputs go through the node's messages; SIGINT/SIGTERM stop
-        # the run and finish the files.
-        from .errors import MdssError
-        from .record.replay import RunRecording
-        if not args.mcap_flush > 0:
-            raise SystemExit(f"mdss run: --mcap-flush must be > 0 seconds, got {args.mcap_flush}")
-        try:
-            rec = RunRecording(mcap=args.mcap, rrd=args.rrd, flush_interval_s=args.mcap_flush)
-        except MdssError as err:
-            raise SystemExit(f"mdss run: {err}")
+    from .errors import MdssError
+    from .record.replay import RunRecording
+    from .record.ros_messages import OutputRates
+    # The node's driver runs the timeline (mdss_ros.ros.driver): inputs as the messages
+    # the node would receive, checked and applied at their steps, the guarded step, a
+    # failed step reset. With --mcap/--rrd the outputs are recorded (the files are opened
+    # before the model build, so a bad path fails at once); without, none is built.
+    # SIGINT/SIGTERM stop the run and finish the files.
+    if not args.mcap_flush > 0:
+        raise SystemExit(f"mdss run: --mcap-flush must be > 0 seconds, got {args.mcap_flush}")
+    recording = bool(args.mcap or args.rrd)
+    try:
+        rec = RunRecording(mcap=args.mcap, rrd=args.rrd, flush_interval_s=args.mcap_flush,
+                           rates=None if recording else OutputRates(0.0, 0.0, 0.0, 0.0, 0.0))
+    except MdssError as err:
+        raise SystemExit(f"mdss run: {err}")
     t0 = time.perf_counter()
-    if rec is None:
-        sim = _make_sim(args)
-    else:
-        from .errors import MdssError
-        try:
-            sim = rec.build(args.scene, _parse_sets(args.set))
-        except MdssError as err:
-            rec.finish()
-            raise SystemExit(f"mdss run: {err}")
+    try:
+        sim = rec.build(args.scene, _parse_sets(args.set))
+    except MdssError as err:
+        rec.finish()
+        raise SystemExit(f"mdss run: {err}")
     st = sim.stats()
     print(f"mdss run: scene {sim.scene.name!r} ({sim.scene.source}): {st['kind']} model, "
           f"{st['vertices']} vertices, {st['tets']} tets, {st['dofs']} DOFs, "
@@ -72,29 +70,19 @@ def cmd_run(args):
     if args.explain:
         _print_explain(sim, "mdss run")
     steps = args.steps if args.steps is not None else int(round(sim.scene["duration"] / sim.dt))
-    if rec is not None:
-        rec.start(sim)
-        player = None
-    else:
-        player = TimelinePlayer(sim.scene["timeline"])
+    rec.start(sim)
     step_ms = []
     rest = sim.rest_positions()
     report_every = max(1, steps // 10)
     try:
         for k in range(steps):
-            if rec is not None and rec.stop_requested:
+            if rec.stop_requested:
                 print(f"mdss run: {signal.Signals(rec.stop_signal).name} at step {k} (t = {sim.time:.3f} s); "
                       f"finishing the recording")
                 steps = k
                 break
             t_now = sim.time
-            if rec is not None:
-                # the node's driver: inputs as messages, the guarded step, the outputs recorded
-                events, ok = rec.advance()
-            else:
-                events = player.apply_due(sim)
-                sim.step()
-                ok = True
+            events, ok = rec.advance()
             for ev in events:
                 print(f"  t = {t_now:7.3f} s  input {ev['topic']}: "
                       f"{ {k2: v for k2, v in ev.items() if k2 not in ('t', 'topic')} }")
@@ -110,9 +98,8 @@ def cmd_run(args):
                 print(f"  step {k + 1:6d}/{steps}  t = {sim.time:7.3f} s  max |u| = {disp:.5g} m  "
                       f"E_total = {e['total']:.6g} J  step {step_ms[-1]:.2f} ms")
     finally:
-        if rec is not None:
-            for line in rec.finish():
-                print(f"mdss run: {line}")
+        for line in rec.finish():
+            print(f"mdss run: {line}")
     wall = time.perf_counter() - t0
     summary = {
         "scene": sim.scene.name, "kind": st["kind"], "steps": steps, "sim_time": sim.time,
@@ -136,7 +123,7 @@ def cmd_run(args):
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2))
         print(f"mdss run: summary written to {args.json}")
-    return 128 + rec.stop_signal if rec is not None and rec.stop_signal else 0
+    return 128 + rec.stop_signal if rec.stop_signal else 0
 
 
 def _print_explain(sim, prefix):
