@@ -106,6 +106,28 @@ NAN, INF = float("nan"), float("inf")
 
 
 # ---------------------------------------------------------------------- shared helpers
+
+def spin_in_background(node):
+    """Spin node's callbacks on a daemon thread (the caller's loop publishes meanwhile);
+    returns the function that stops it."""
+    from rclpy.executors import SingleThreadedExecutor
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    running = [True]
+
+    def spin():
+        while running[0]:
+            executor.spin_once(timeout_sec=0.02)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+
+    def stop():
+        running[0] = False
+        spinner.join(2)
+        executor.remove_node(node)
+    return stop
+
 def _pct(xs, q):
     xs = sorted(x for x in xs if x is not None and math.isfinite(x))
     if not xs:
@@ -744,7 +766,6 @@ def fuzz_client_main(cfg, out):
     import numpy as np
     import rclpy
     from rclpy.duration import Duration
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from geometry_msgs.msg import PoseStamped, WrenchStamped
@@ -782,16 +803,7 @@ def fuzz_client_main(cfg, out):
         pubs[f"collider:{c}"] = node.create_publisher(PoseStamped, f"{NS}/colliders/{c}/pose", pub_qos)
     for g in ghosts:       # first: the node subscribes only when its diagnostics timer sees them
         pubs[f"ghost:{g}"] = node.create_publisher(PoseStamped, f"{NS}/colliders/{g}/pose", pub_qos)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    running = [True]
-
-    def spin():
-        while running[0]:
-            executor.spin_once(timeout_sec=0.02)
-
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
+    stop_spinning = spin_in_background(node)
 
     def wait(cond, timeout, what):
         deadline = time.monotonic() + timeout
@@ -860,9 +872,7 @@ def fuzz_client_main(cfg, out):
               "bbox": state["topology"]}
     Path(out).write_text(json.dumps(result))
     print(f"fuzzer done: {sent} messages in {t_sent:.2f} s, acknowledged: {acked}", flush=True)
-    running[0] = False
-    spinner.join(2)
-    executor.remove_node(node)
+    stop_spinning()
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
@@ -873,7 +883,6 @@ def soak_pub_main(cfg, out):
     import numpy as np
     import rclpy
     from rclpy.duration import Duration
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from geometry_msgs.msg import WrenchStamped
@@ -908,16 +917,7 @@ def soak_pub_main(cfg, out):
                              QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                                         reliability=ReliabilityPolicy.RELIABLE,
                                         durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    running = [True]
-
-    def spin():
-        while running[0]:
-            executor.spin_once(timeout_sec=0.02)
-
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
+    stop_spinning = spin_in_background(node)
     deadline = time.monotonic() + 120
     while (pub.get_subscription_count() == 0 or state["clock"] is None) and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -995,9 +995,7 @@ def soak_pub_main(cfg, out):
               "latency_ms": lat, "latency_from_stamp_ms": lat_stamp, "latency_unresolved": unresolved}
     Path(out).write_text(json.dumps(result))
     print(f"soak publisher {index} done: {sent} sent in {elapsed:.2f} s, acknowledged: {acked}", flush=True)
-    running[0] = False
-    spinner.join(2)
-    executor.remove_node(node)
+    stop_spinning()
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
