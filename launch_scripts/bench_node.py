@@ -3,7 +3,8 @@
 
     launch_scripts/bench_node.py latency [SCENE ...] [--seconds 10] [--set KEY=VALUE]
     launch_scripts/bench_node.py outputs [--sizes 10000,50000]
-    launch_scripts/bench_node.py all --json out/bench_node.json
+    launch_scripts/bench_node.py bodies [--scene cantilever] [--counts 1,2,4] [--seconds 20] [--json FILE]
+    launch_scripts/bench_node.py all --json out/bench_node.json        (latency and outputs)
 
 latency: the node runs SCENE (default: every scene in msg_scenes/) at 90 Hz physics
 (real_time_factor 1) with 30 Hz points, in its own process; a client process publishes
@@ -18,6 +19,32 @@ outputs: the cost per frame of building and publishing each output type for a
 synthetic surface of S vertices (2S triangles, 8 domains), with a subscriber process
 receiving every topic: in-process timings of the node's own encoders, plus the
 shape_msgs/Mesh built from Python objects for comparison.
+
+bodies: the real-time factor of N body nodes sharing this machine, for each N of
+--counts. N node processes of --scene (--set overrides), named body_1..body_N, each in
+clock_mode follow (several nodes in clock_mode source would be several /clock owners),
+points at 30 Hz of sim time, the other outputs at the node's defaults, /diagnostics at
+1 Hz of wall time. The nodes start one after the other (N concurrent model builds would
+only slow each other). One clock-master process (run_scene.py's) then ticks /clock at
+90 Hz in real time; after --warmup s (default 5) the run lasts --seconds and every
+node's /diagnostics windows in it are kept. Per node (the table's columns):
+  rtf med, rtf min   the node's own real_time_factor of each 1 s window (sim time
+                     advanced / wall time, measured in the node): median and minimum;
+  rtf all            sim_time advanced / receipt wall time, first to last window;
+  master             the same for the master's time (clock_master_time): 1 unless the
+                     master itself was starved;
+  step ms            median of the windows' step_ms_median;
+  p90w               90th percentile of the windows' step_ms_median (the node reports a
+                     median and a max per window, not every step: this is the p90 over
+                     windows, not over steps);
+  max                the largest step_ms_max;
+  lag end, lag max   clock_lag (master time - sim time) in the last window, and its largest;
+  cpu %              CPU time of the node's process tree over the run / wall time
+                     (100 % = one core);
+and, for each N, os.getloadavg() at the end and the CPU % that processes outside this
+benchmark used during the run (the machine's other work). In follow a node can never
+pass the master, so rtf tops out at 1; a node that cannot keep up shows rtf < 1 and a
+growing lag.
 """
 import argparse
 import json
@@ -33,6 +60,18 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(REPO))
 
 from launch_testing import Launch  # noqa: E402
+
+def _wire(msg):
+    """What rclpy's Publisher.publish takes: an rclpy message or CDR bytes. A rosbags
+    typestore object (what mdss_ros.ros.convert builds when the node publishes CDR) is
+    serialised here, as the node does, so its cost is in the timing."""
+    if isinstance(msg, (bytearray, memoryview)):
+        return bytes(msg)
+    if isinstance(msg, bytes) or not hasattr(msg, "__msgtype__"):
+        return msg
+    from mdss_ros.ros import convert
+    return bytes(convert.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+
 
 def _median(xs):
     return statistics.median(xs) if xs else float("nan")
@@ -101,7 +140,7 @@ def client_main(seconds, period, out, handle):
             p = {"stamp": s, "wall": wall, "recv": {}, "at_stamp": None}
             state["pending"].append(p)
         force = (0.0, 0.0, -10.0 if k % 2 == 0 else 0.0)
-        pub.publish(convert.wrench_stamped(s, handle, list(force) + [0, 0, 0]))
+        pub.publish(_wire(convert.wrench_stamped(s, handle, list(force) + [0, 0, 0])))
         k += 1
         time.sleep(period)
     time.sleep(0.5)
@@ -187,7 +226,7 @@ def bench_outputs(sizes, frames, workdir):
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from geometry_msgs.msg import PoseArray, TransformStamped
+    from geometry_msgs.msg import Point, PoseArray, TransformStamped
     from sensor_msgs.msg import PointCloud2
     from shape_msgs.msg import Mesh, MeshTriangle
     from visualization_msgs.msg import Marker
@@ -224,13 +263,13 @@ def bench_outputs(sizes, frames, workdir):
             sp, me, mk = convert.SurfacePoints(dom), convert.MeshEncoder(tri), convert.MarkerEncoder(tri, dom)
             tri_objs = [MeshTriangle(vertex_indices=t) for t in tri.tolist()]
             jobs = {
-                "points": lambda t, x: pubs["points"].publish(sp.message(t, "world", x)),
-                "mesh": lambda t, x: pubs["mesh"].publish(me.encode(x)),
+                "points": lambda t, x: pubs["points"].publish(_wire(sp.message(t, "world", x))),
+                "mesh": lambda t, x: pubs["mesh"].publish(_wire(me.encode(x))),
                 "mesh_objects": lambda t, x: pubs["mesh_objects"].publish(
-                    Mesh(triangles=tri_objs, vertices=[convert.point(p) for p in x])),
-                "marker": lambda t, x: pubs["marker"].publish(mk.encode(t, "world", x)),
-                "poses": lambda t, x: pubs["poses"].publish(convert.pose_array(t, "world", poses)),
-                "transforms": lambda t, x: [pubs["transforms"].publish(m) for m in
+                    Mesh(triangles=tri_objs, vertices=[Point(x=p[0], y=p[1], z=p[2]) for p in x.tolist()])),
+                "marker": lambda t, x: pubs["marker"].publish(_wire(mk.encode(t, "world", x))),
+                "poses": lambda t, x: pubs["poses"].publish(_wire(convert.pose_array(t, "world", poses))),
+                "transforms": lambda t, x: [pubs["transforms"].publish(_wire(m)) for m in
                                             convert.domain_transforms(t, "world", names, poses)],
             }
             row = {"surface_vertices": len(x), "triangles": len(tri)}
@@ -246,13 +285,133 @@ def bench_outputs(sizes, frames, workdir):
                     time.sleep(0.02)       # let the sink take it (reliable, depth 10)
                 row[f"{name}_ms"] = _median(ms)
             row["points_bytes"] = len(x) * 16
-            row["mesh_bytes"] = len(me.encode(x))
-            row["marker_bytes"] = len(mk.encode(0.0, "world", x))
+            row["mesh_bytes"] = len(_wire(me.encode(x)))
+            row["marker_bytes"] = len(_wire(mk.encode(0.0, "world", x)))
             rows.append(row)
             print(json.dumps(row), flush=True)
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
     return rows
+
+
+# ---------------------------------------------------------------------- several bodies
+def _cpu_seconds(pid):
+    """utime + stime (s) of pid and its descendants (a process may re-execute itself)."""
+    tick, total, todo = os.sysconf("SC_CLK_TCK"), 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick        # utime, stime
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
+
+
+def _other_cpu_seconds():
+    """{pid: utime + stime (s)} of every process outside this one's tree: the machine's
+    other work, which the bodies share the CPUs with."""
+    tick, procs = os.sysconf("SC_CLK_TCK"), {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                f = Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()
+                procs[int(d)] = (int(f[1]), (int(f[11]) + int(f[12])) / tick)      # ppid, cpu
+            except (OSError, ValueError, IndexError):
+                pass
+    mine, grown = {os.getpid()}, True
+    while grown:
+        grown = False
+        for pid, (ppid, _) in procs.items():
+            if ppid in mine and pid not in mine:
+                mine.add(pid)
+                grown = True
+    return {pid: cpu for pid, (_, cpu) in procs.items() if pid not in mine}
+
+
+def _rate(points):
+    """(value advanced) / (wall time) between the first and last (wall, value) points."""
+    if len(points) < 2 or points[-1][0] <= points[0][0]:
+        return float("nan")
+    return (points[-1][1] - points[0][1]) / (points[-1][0] - points[0][0])
+
+
+def bench_bodies(scene, counts, seconds, overrides, workdir, warmup=5.0, clock_hz=90.0, points_hz=30.0):
+    from launch_testing import status_values
+    rows = []
+    for n in counts:
+        names = [f"body_{i}" for i in range(1, n + 1)]
+        with Launch(Path(workdir) / f"bodies_{Path(scene).stem}_{n}") as launch:
+            nodes = {}
+            for name in names:
+                params = dict(scene=scene, clock_mode="follow", points_publish_rate=points_hz, diagnostics_rate=1.0)
+                if overrides:
+                    params["scene_overrides"] = overrides
+                nodes[name] = launch.node(name=name, ros_args=["-r", f"__node:={name}"], **params)
+                nodes[name].wait_for(rf"\] \[{name}\]: ready:", timeout=3600)
+            probe = launch.probe()
+            probe.sub("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+            master = launch.script("clock", HERE / "run_scene.py", "--clock-master-process",
+                                   "--dt", repr(1.0 / clock_hz), "--rtf", "1", "--until", "0",
+                                   "--nodes", ",".join(names))
+            master.wait_for(r"clock master: .* subscribed", timeout=120)
+            time.sleep(warmup)
+            t0, w0 = time.time(), time.monotonic()
+            cpu0 = {name: _cpu_seconds(p.popen.pid) for name, p in nodes.items()}
+            other0 = _other_cpu_seconds()
+            time.sleep(seconds)
+            t1, w1 = time.time(), time.monotonic()
+            cpu1 = {name: _cpu_seconds(p.popen.pid) for name, p in nodes.items()}
+            other1 = _other_cpu_seconds()
+            # a process that started during the run counts whole, one that ended is missed
+            other = 100.0 * sum(c - other0.get(pid, 0.0) for pid, c in other1.items()) / (w1 - w0)
+            load = os.getloadavg()
+            diags = probe.get("/diagnostics")
+            codes = launch.shutdown()
+        for name in names:
+            win = [(d["_recv"], v) for d in diags if t0 <= d["_recv"] <= t1
+                   for v in [status_values(d, f"{name}: simulation")] if v and v["state"] == "running"]
+            steps = [float(v["step_ms_median"]) for _, v in win if int(v["steps_in_window"]) > 0]
+            rtf = [float(v["real_time_factor"]) for _, v in win]
+            lag = [float(v.get("clock_lag", "nan")) for _, v in win]
+            rows.append({
+                "scene": Path(scene).stem, "bodies": n, "node": name, "windows": len(win),
+                "rtf_median": _median(rtf), "rtf_min": min(rtf) if rtf else float("nan"),
+                "rtf_overall": _rate([(t, float(v["sim_time"])) for t, v in win]),
+                "master_rtf": _rate([(t, float(v["clock_master_time"])) for t, v in win]),
+                "step_ms_median": _median(steps), "step_ms_p90_of_windows": _pct(steps, 0.9),
+                "step_ms_max": max((float(v["step_ms_max"]) for _, v in win), default=float("nan")),
+                "cycle_ms_median": _median([float(v["cycle_ms_median"]) for _, v in win
+                                            if int(v["steps_in_window"]) > 0]),
+                "clock_lag_end": lag[-1] if lag else float("nan"), "clock_lag_max": max(lag, default=float("nan")),
+                "cpu_percent": 100.0 * (cpu1[name] - cpu0[name]) / (w1 - w0),
+                "dofs": int(win[-1][1]["dofs"]) if win else None,
+                "surface_vertices": int(win[-1][1]["surface_vertices"]) if win else None,
+                "loadavg_end": list(load), "exit_code": codes.get(name), "measured_wall": [t0, t1],
+                "other_cpu_percent": other,
+            })
+        print(_bodies_table([r for r in rows if r["bodies"] == n]), flush=True)
+    return rows
+
+
+def _bodies_table(rows):
+    head = ("bodies", "node", "rtf med", "rtf min", "rtf all", "master", "step ms", "p90w", "max",
+            "lag end", "lag max", "cpu %")
+    lines = [" | ".join(head)]
+    for i, r in enumerate(rows):
+        lines.append(" | ".join([str(r["bodies"]), r["node"], f"{r['rtf_median']:.3f}", f"{r['rtf_min']:.3f}",
+                                 f"{r['rtf_overall']:.3f}", f"{r['master_rtf']:.3f}",
+                                 f"{r['step_ms_median']:.2f}", f"{r['step_ms_p90_of_windows']:.2f}",
+                                 f"{r['step_ms_max']:.1f}", f"{round(r['clock_lag_end'], 3) + 0.0:.3f}",
+                                 f"{round(r['clock_lag_max'], 3) + 0.0:.3f}", f"{r['cpu_percent']:.0f}"]))
+        if i + 1 == len(rows) or rows[i + 1]["bodies"] != r["bodies"]:
+            la = r["loadavg_end"]
+            lines.append(f"  load average at the end of the {r['bodies']}-body run: {la[0]:.2f} {la[1]:.2f} "
+                         f"{la[2]:.2f} (1, 5, 15 min; {os.cpu_count()} CPUs); CPU used by other work on the "
+                         f"machine meanwhile: {r['other_cpu_percent']:.0f} %")
+    return "\n".join(lines)
 
 
 def sink_main(topics):
@@ -278,9 +437,12 @@ def sink_main(topics):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("what", nargs="?", choices=("latency", "outputs", "all"), default="all")
+    ap.add_argument("what", nargs="?", choices=("latency", "outputs", "bodies", "all"), default="all")
     ap.add_argument("scenes", nargs="*", help="scenes for latency (default: all of msg_scenes/)")
-    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--seconds", type=float, default=None, help="s measured (default: latency 10, bodies 20)")
+    ap.add_argument("--scene", default="cantilever", help="bodies: the scene of every body")
+    ap.add_argument("--counts", default="1,2,4", help="bodies: numbers of body nodes, one run each")
+    ap.add_argument("--warmup", type=float, default=5.0, help="bodies: s of wall time before measuring")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--sizes", default="10000,50000")
     ap.add_argument("--frames", type=int, default=20)
@@ -291,7 +453,7 @@ def main(argv=None):
     ap.add_argument("--sink", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     if args.client:
-        return client_main(args.seconds, 0.25, args.client, args.handle)
+        return client_main(args.seconds if args.seconds is not None else 10.0, 0.25, args.client, args.handle)
     if args.sink:
         return sink_main(args.sink)
     import tempfile
@@ -299,9 +461,16 @@ def main(argv=None):
     out = {}
     if args.what in ("latency", "all"):
         scenes = args.scenes or sorted(str(p) for p in (REPO / "msg_scenes").glob("*.yaml"))
-        out["latency"] = bench_latency(scenes, args.seconds, args.set, workdir)
+        out["latency"] = bench_latency(scenes, args.seconds if args.seconds is not None else 10.0, args.set, workdir)
     if args.what in ("outputs", "all"):
         out["outputs"] = bench_outputs([int(s) for s in args.sizes.split(",")], args.frames, workdir)
+    if args.what == "bodies":
+        out["bodies"] = {"scene": args.scene, "overrides": args.set, "counts": [int(c) for c in args.counts.split(",")],
+                         "seconds": args.seconds if args.seconds is not None else 20.0, "warmup": args.warmup,
+                         "clock_hz": 90.0, "points_hz": 30.0, "clock_mode": "follow", "cpus": os.cpu_count()}
+        out["bodies"]["rows"] = bench_bodies(args.scene, out["bodies"]["counts"], out["bodies"]["seconds"],
+                                             args.set, workdir, warmup=args.warmup)
+        print("\n" + _bodies_table(out["bodies"]["rows"]))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2))

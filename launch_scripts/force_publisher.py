@@ -53,7 +53,10 @@ POINT_FORCE_DTYPE = np.dtype([(f, "<f4") for f in ("x", "y", "z", "fx", "fy", "f
 class InputPublisher(Node):
     """Publishers for the inputs of the mdss node named `target` (e.g. "/mdss")."""
 
-    def __init__(self, target="/mdss", name="mdss_force_publisher"):
+    def __init__(self, target="/mdss", name=None):
+        # named after its body (/mdss -> mdss_force_publisher), so several bodies' publishers
+        # are told apart in the graph
+        name = name or f"{target.strip('/').replace('/', '_') or 'mdss'}_force_publisher"
         super().__init__(name)
         self.target = target.rstrip("/")
         self.qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
