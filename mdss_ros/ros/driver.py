@@ -124,7 +124,6 @@ class Driver:
         self._seq = 0
         self.counts = dict.fromkeys(("received", "applied", "late", "dropped", "cleared"), 0)
         self.rejected = dict.fromkeys(validate.KINDS, 0)
-        self.last_rejection = {}           # kind -> reason of the last one
         self.stability, self.failures, self.last_failure = "ok", 0, ""
         self._guard_seen = 0               # guard recoveries already reported
         self._failing = False
@@ -216,7 +215,6 @@ class Driver:
     def _reject(self, err, topic):
         with self._lock:
             self.rejected[err.kind] += 1
-            self.last_rejection[err.kind] = err.reason
         self.report("warn", f"rejected {topic}: {err.reason}", err.kind)
 
     @property
@@ -224,7 +222,7 @@ class Driver:
         return len(self._queue)
 
     def apply_due(self):
-        """Apply (and emit) the inputs due before the coming step; [(topic, description)]."""
+        """Apply (and emit) the inputs due before the coming step; [(item, description)]."""
         limit = self.run_time + 0.5 * self.sim.dt
         with self._lock:
             due = []
