@@ -49,6 +49,9 @@ def _messages(frame):
         "point_forces": event("point_force"),
         "clear_forces": event("clear_forces"),
         "reset": lambda: convert.header(t, frame),
+        "parameters": lambda: convert.parameter_event(t, f"/{frame}", {
+            f"colliders.{frame or 'c'}.friction_static": 0.25, "points_publish_rate": 45.0,
+            "world_frame": frame or "w", "max_point_forces": 7, "flag": True}),
         "collider_pose": event("collider_pose"),
         "topology": decoded("topology", lambda: convert.topology_mesh_bytes(x, tri)),
         "points": lambda: convert.SurfacePoints(dom).message(t, frame, x),
@@ -88,6 +91,15 @@ def test_rclpy_reads_our_cdr_and_rosbags_reads_rclpys(kind):
         assert ours[:4] == b"\x00\x01\x00\x00"                          # little-endian plain CDR
         assert rm.cdr_bytes(msg) == ours and rm.cdr_bytes(build()) == ours   # deterministic
         theirs = serialize_message(deserialize_message(ours, cls))
+        if kind == "parameters":
+            # ParameterValue always holds empty int64 and float64 sequences: Fast CDR pads to
+            # 8 bytes before an empty one, rosbags does not (and cannot read Fast CDR's).
+            # rclpy and mcap_ros2 read ours; only our own recordings are decoded by us.
+            field = {1: "bool_value", 2: "integer_value", 3: "double_value", 4: "string_value"}
+            back = deserialize_message(ours, cls)
+            got = {p.name: getattr(p.value, field[p.value.type]) for p in back.changed_parameters}
+            assert got == convert.parameter_values(msg) and got["points_publish_rate"] == 45.0
+            continue
         assert len(theirs) == len(ours)
         assert all(a == b or a == 0 for a, b in zip(ours, theirs))       # only (zeroed) padding differs
         assert rm.cdr_bytes(convert.decode(theirs, type_name)) == ours   # every field survived both ways
