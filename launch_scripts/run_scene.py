@@ -795,18 +795,7 @@ def run_bodies(args, bodies, clock):
         # publish up to their end (the last /diagnostics) is in the recordings.
         for group in ([x for x in procs if not x[0].endswith("/recorder")],
                       [x for x in procs if x[0].endswith("/recorder")]):
-            for name, p in reversed(group):
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)
-            for name, p in reversed(group):
-                try:
-                    rc = p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    rc = p.wait()
-                print(f"run_scene: {name} exited with {rc}", flush=True)
-                if rc != 0:
-                    code = code or rc
+            code = stop_processes(group, code)
         if watch.poll() is None:
             watch.send_signal(signal.SIGINT)
             try:
@@ -891,18 +880,25 @@ def run_single(args):
             time.sleep(0.1)
     finally:
         clock.close()
-        for name, p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for name, p in reversed(procs):
-            try:
-                rc = p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                rc = p.wait()
-            print(f"run_scene: {name} exited with {rc}", flush=True)
-            if rc != 0:
-                code = code or rc
+        code = stop_processes(procs, code)
+    return code
+
+
+def stop_processes(procs, code=0):
+    """SIGINT to each (name, Popen), last started first, then wait (kill after 30 s); the
+    first non-zero exit code becomes `code` if it was 0."""
+    for name, p in reversed(procs):
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for name, p in reversed(procs):
+        try:
+            rc = p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            rc = p.wait()
+        print(f"run_scene: {name} exited with {rc}", flush=True)
+        if rc != 0:
+            code = code or rc
     return code
 
 
