@@ -164,3 +164,24 @@ def test_steps_run_with_the_scene_blas_threads_and_restore_them():
     assert load_scene("cantilever", {"model.blas_threads": None})["model"]["blas_threads"] is None
     sim = Simulator("cantilever", {"body.mesh.cell": 0.05, "model.kind": "full"})
     assert sim._blas_threads.n is None           # auto: a full-space model keeps every core
+
+
+def test_a_collider_swept_in_sub_steps_counts_the_work_of_every_sub_step():
+    """A load applied in the step where a collider is swept near the body in sub-steps: the
+    guard judges the whole sweep, so the work it is given must be the sum over the sub-steps.
+    (With the last sub-step's work alone, a -5 N tip wrench looked like created energy and
+    the guard rolled the step back: the node test's intermittent "recovered".)"""
+    sim = Simulator(load_scene("cantilever", overrides={
+        "gravity": [0.0, 0.0, 0.0], "timeline": [],
+        "colliders": {"ball": {"shape": "sphere", "radius": 0.05, "position": [0.5, 0.05, 0.5]}}}))
+    sim.step(3)
+    e0 = sim.energy()["total"]
+    sim.set_collider_pose("ball", (0.5, 0.0, 0.3))        # 0.15 m above the beam: swept, no contact
+    sim.set_wrench("tip", force=(0, 0, -5.0))
+    sim.step()
+    st = sim.stats()
+    assert st["collider_substeps"] > 1 and len(sim.contacts()) == 0
+    assert st["stability"] == "stable" and st["guard_attempts"] == 1, st["guard_last_event"]
+    # Backward Euler only dissipates: the energy gained is at most the work, and most of it.
+    gained = sim.energy()["total"] - e0
+    assert 0.5 * st["guard_work"] < gained <= st["guard_work"]
