@@ -386,6 +386,16 @@ def cmd_tradeoff(args):
     from .errors import ReportError
     from .verify.tradeoff import run_tradeoff
     try:
+        if getattr(args, "levels", None) or getattr(args, "free_body", False):
+            from .verify.peers_limbed import LOAD_LEVELS, limbed_levels_report
+            from .verify.limbed_free import limbed_free_report
+            sets = _parse_sets(args.set)
+            if args.levels:
+                levels = list(LOAD_LEVELS) if args.levels == "all" else [v for v in args.levels.split(",") if v]
+                limbed_levels_report(args.scene, args.out, levels=levels, quick=args.quick, sets=dict(sets))
+            if args.free_body:
+                limbed_free_report(args.scene, args.out, quick=args.quick, sets=dict(sets))
+            return 0
         run_tradeoff(args.scene, args.out, quick=args.quick, sets=_parse_sets(args.set))
     except (MdssError, ReportError) as err:
         raise SystemExit(f"mdss tradeoff: {err}")
@@ -511,6 +521,13 @@ def main(argv=None):
                    help="tradeoff.NAME=V changes a study setting (horizon, warmup, probe_every, "
                         "truth_newton_iterations, truth_tolerance, variants, peers, peers_only: the MuJoCo "
                         "peer comparison alone); other keys override the scene")
+    p.add_argument("--levels", metavar="LIST",
+                   help="limbed body only (star_limbs): instead of the sweep, the static peer study at the load "
+                        "levels LIST of small,medium,large (or all), one table and Pareto plot per level "
+                        "(verify/peers_limbed.py; --quick: two of our rows and MuJoCo's quadratic flex)")
+    p.add_argument("--free-body", action="store_true",
+                   help="limbed body only: the body with its pins removed and torques on every arm's handle, "
+                        "error over time against full FEM (verify/limbed_free.py)")
     p.set_defaults(func=cmd_tradeoff)
 
     p = sub.add_parser("stability", help="stability matrix: material x stiffness x dt x spin x force "
