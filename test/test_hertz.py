@@ -105,17 +105,28 @@ TINY = {"block": 0.2, "cell_coarse": 0.05, "force_fractions": [0.4, 1.0], "timin
         "force_tol": 0.02, "levels": [1], "reduced_levels": [], "meshless_levels": [1]}
 
 
-def test_meshless_hertz_scene_is_the_full_mesh_with_the_static_step():
+def test_meshless_hertz_scene_has_isotropic_graded_nodes_and_the_static_step():
     cfg = dict(hz.HERTZ, **TINY, meshless={"neighbours": 12})
     full, ml = Simulator(hz.hertz_scene(cfg, 1, "full")), Simulator(hz.hertz_scene(cfg, 1, "meshless"))
     assert ml.model.kind == "meshless" and full.model.kind == "full"
-    # Nodes are the graded mesh's vertices; the same pins, hence the same DOFs.
-    np.testing.assert_array_equal(ml.vertex_positions(), full.vertex_positions())
-    assert ml.model.n_dofs == full.model.n_dofs
+    # Nodes are the vertices of the study's graded BCC mesh (meshless_mesh), read back exactly.
+    mesh = hz.meshless_mesh(cfg, 1)
+    np.testing.assert_array_equal(ml.vertex_positions(), mesh.vertices)
+    b = ml.model.build
+    assert b.grown == 0 and b.ill_conditioned == 0 and b.integration_residual < 1e-8
+    # The same block: its top face holds the contact point, its bottom face is pinned.
+    X = ml.vertex_positions()
+    np.testing.assert_allclose([X.min(0), X.max(0)], [full.vertex_positions().min(0), full.vertex_positions().max(0)])
+    assert np.all(X[ml.body.pinned, 2] == X[:, 2].min()) and len(ml.body.pinned) > 0
     assert ml.model.dt == hz.STATIC["dt"] and ml.model.newton_iterations == hz.STATIC["newton_iterations"]
     assert ml.model.settings["neighbours"] == 12                 # cfg["meshless"] reaches model.meshless
+    # meshless_nodes: graded_block gives the FEM rows' tensor-product mesh instead.
+    tp = Simulator(hz.hertz_scene(dict(cfg, meshless_nodes="graded_block"), 1, "meshless"))
+    np.testing.assert_array_equal(tp.vertex_positions(), full.vertex_positions())
     with pytest.raises(hz.ReportError, match="unknown model kind"):
         hz.hertz_scene(cfg, 1, "meshles")
+    with pytest.raises(hz.ReportError, match="meshless_nodes"):
+        hz.hertz_scene(dict(cfg, meshless_nodes="octree"), 1, "meshless")
 
 
 def test_meshless_interactive_timing_restores_the_static_settings():
@@ -191,9 +202,10 @@ def test_hertz_report_with_a_meshless_row_on_a_small_block(tmp_path):
     data = hz.hertz_report(tmp_path, quick=True, overrides=TINY, log=lambda *a: None)
     rows = {r["kind"]: r for r in data["rows"]}
     assert set(rows) == {"full", "meshless"}
-    ml, full = rows["meshless"], rows["full"]
+    ml = rows["meshless"]
     assert "failed" not in ml, ml.get("failed")
-    assert ml["dofs"] == full["dofs"] == ml["full_space_dofs"]
+    assert ml["dofs"] == ml["full_space_dofs"] == 3 * (ml["vertices"] - len(Simulator(hz.hertz_scene(
+        dict(hz.HERTZ, **TINY), 1, "meshless")).body.pinned))
     assert len(ml["points"]) == 2 and all(p["force"] > 0 for p in ml["points"])
     ff = ml["fixed_force"]
     assert abs(ff["force"] - ff["target"]) <= TINY["force_tol"] * ff["target"] + 1e-12
@@ -211,10 +223,9 @@ def test_hertz_report_with_a_meshless_row_on_a_small_block(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
 def test_verify_hertz_quick_meshless_rows(tmp_path):
-    """The quick meshless level on the 2 m block next to one full level (a/h = 2). HEAD's
-    unstabilised model did not settle there (force changing 5 % a step, the guard keeping
-    steps degraded on inverted tets: 6 min under load): a failed level must be a row that
-    says why, and the report goes on; a measured one is checked like the FEM rows."""
+    """The quick meshless level (a/h = 2) on the 2 m block next to one full level (a/h = 2).
+    On the FEM rows' tensor-product block the meshless level did not settle (a failed row);
+    on its isotropically graded BCC nodes it is measured and checked like the FEM rows."""
     from mdss_ros.cli import main
     assert main(["verify", "hertz", "--out", str(tmp_path), "--quick", "--set", "levels=[2]",
                  "--set", "reduced_levels=[]"]) == 0
@@ -223,17 +234,37 @@ def test_verify_hertz_quick_meshless_rows(tmp_path):
     assert set(rows) == {"full", "meshless"} and rows["meshless"]["level"] == hz.QUICK["meshless_levels"][0]
     ml, cmp = rows["meshless"], data["meshless_vs_full"]
     note = next(n for n in data["notes"] if n.startswith("meshless: "))
-    if "failed" in ml:
-        assert "no static rest" in ml["failed"] or "Error" in ml["failed"]
-        assert cmp["meshless"] is None and ml["failed"].split(": ", 1)[1][:40] in note
-    else:
-        from mdss_ros.body import build_body
-        from mdss_ros.scene import load_scene
-        # Its nodes are the vertices of the graded mesh at its level.
-        mesh = build_body(load_scene(hz.hertz_scene(dict(hz.HERTZ, **hz.QUICK), ml["level"], "full")))
-        assert ml["vertices"] == len(mesh.vertices) and ml["dofs"] == ml["full_space_dofs"]
-        assert len(ml["points"]) == len(hz.QUICK["force_fractions"]) and ml["step_ms"] > 0
-        assert cmp["meshless"]["dofs"] == ml["dofs"]
-        assert cmp["within_5%"] == (ml["max_error"] <= 0.05)
+    assert "failed" not in ml, ml.get("failed")
+    from mdss_ros.body import build_body
+    from mdss_ros.scene import load_scene
+    # Its nodes are the vertices of the graded BCC mesh at its level.
+    mesh = build_body(load_scene(hz.hertz_scene(dict(hz.HERTZ, **hz.QUICK), ml["level"], "meshless")))
+    assert ml["vertices"] == len(mesh.vertices) == hz.meshless_mesh(dict(hz.HERTZ, **hz.QUICK),
+                                                                    ml["level"]).n_verts
+    assert ml["dofs"] == ml["full_space_dofs"]
+    assert len(ml["points"]) == len(hz.QUICK["force_fractions"]) and ml["step_ms"] > 0
+    assert cmp["meshless"]["dofs"] == ml["dofs"] and f"{ml['dofs']} DOFs" in note
+    assert cmp["within_5%"] == (ml["max_error"] <= 0.05)
     for name in data["plots"]:
         assert (tmp_path / name).stat().st_size > 5000
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)
+def test_meshless_hertz_within_5_percent_at_the_fixed_force():
+    """The meshless model on the study's isotropically graded BCC nodes at a/h = 2 (8,389
+    nodes, 24,840 DOFs), force-controlled at the study's fixed force (0.6 F_max = 1.41 N):
+    every moment matrix well conditioned, and the indentation within 5 % of Hertz (+4.7 %
+    measured; on the tensor-product block the force control did not converge). 59 s here."""
+    cfg = dict(hz.HERTZ)
+    sim = Simulator(hz.hertz_scene(cfg, 2, "meshless"))
+    b = sim.model.build
+    assert b.grown == 0 and b.ill_conditioned == 0 and b.integration_residual < 1e-8
+    R = cfg["sphere_radius"]
+    e_star = hz.effective_modulus(cfg["material"]["young"], cfg["material"]["poisson"])
+    F_ref = cfg["fixed_force_fraction"] * float(hz.hertz_force(cfg["a_ref"] ** 2 / R, R, e_star))
+    res = hz.force_controlled(sim, F_ref, float(hz.hertz_indentation(F_ref, R, e_star)), R, cfg["force_tol"],
+                              cfg["static_tolerance"], cfg["static_max_steps"])
+    d_h = float(hz.hertz_indentation(res["force"], R, e_star))
+    assert abs(res["force"] - F_ref) <= cfg["force_tol"] * F_ref
+    assert abs(res["depth"] - d_h) / d_h < 0.05

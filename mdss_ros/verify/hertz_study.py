@@ -36,14 +36,19 @@ domain (docs/method.md §12) and the rest of the block one pinned subspace domai
 a/h = 2 a zone of 3 a_ref gave -12 %, 6 a_ref -8.6 %, 10 a_ref -7.3 % (30 modes) and -6.7 %
 (80 modes), against -5.5 % for full-space FEM on the same mesh (0.25 F_max).
 The meshless model (`model.kind: meshless`, docs/method.md §19) at the meshless levels: its
-nodes are the same graded mesh's vertices, its static step the same backward Euler (its law
-is its own StVK with a volume term; only young, poisson, density are read). Its stiffness has
-about 5 x the non-zeros of the tet mesh's, so a level costs several times the FEM row of the
-same mesh, and its levels stop lower. A meshless level whose static solve does not settle is
-reported as a failed row with its reason, not an abort of the FEM rows (on this graded
-tensor-product block it does not settle: §19.7). Compared at equal accuracy: the first
-meshless level within 5 % at every force, its ms per step, and the cheapest full FEM row at
-least as accurate (`first_within_row` with the meshless row's error as the bound).
+nodes are the vertices of an isotropically graded unstructured mesh of the same block
+(`meshless_mesh`: nested BCC lattices of cube edge h = a_ref / level round the contact,
+doubling every `meshless_layers` cells, Delaunay-tetrahedralised), as [HZ] graded an
+unstructured tetrahedralisation; its static step is the same backward Euler (its law is its
+own StVK with a volume term; only young, poisson, density are read). On the FEM rows'
+tensor-product block (`meshless_nodes: graded_block`) cells 0.02 m one way and 0.15-0.5 m the
+other left two thirds of the nodes with singular moment matrices and the force control did not
+converge (§19.7); on the BCC nodes every moment matrix has condition < 10. Its stiffness has
+about 5 x the non-zeros of a tet mesh's with as many nodes, so a level costs several times a
+FEM row of as many DOFs. A meshless level whose static solve does not settle is reported as a
+failed row with its reason, not an abort of the FEM rows. Compared at equal accuracy: the
+first meshless level within 5 % at every force, its ms per step, and the cheapest full FEM
+row at least as accurate (`first_within_row` with the meshless row's error as the bound).
 
 Finite block vs half-space: a fixed bottom at depth L removes the far-field settlement the
 half-space has, about F (1 + nu)(3 - 2 nu) / (2 pi E L) under a point load, which is
@@ -72,12 +77,17 @@ HERTZ = {
     "fixed_force_fraction": 0.6,   # Fig. 5: indentation at this fraction of the largest force
     "levels": [1.5, 2, 3, 4],      # a_ref / h of the full-space meshes
     "reduced_levels": [2, 3, 4],   # a_ref / h of the reduced models (4: first within 5 % at every force)
-    # a_ref / h of the meshless models (4.3K, 7.4K, 11.7K nodes). At 1 (11.9K DOFs, the
-    # unstabilised model of c43f974) a static Newton iteration took 0.8 s (factorisation 0.3,
-    # contact solves 0.4), 5-7 x the FEM's on the same mesh; FEM's cost grows ~6 x from a/h 1
-    # to 2, so a/h = 2 is ~5 s an iteration: minutes if static steps take a few iterations.
-    "meshless_levels": [1, 1.5, 2],
+    # a_ref / h of the meshless models: 4,784, 8,389, 10,924 nodes of meshless_mesh (14.0K,
+    # 24.8K, 32.6K DOFs). Force-controlled at the fixed force: +14.3 %, +4.7 %, +3.0 %
+    # (docs/method.md §19.8); a/h = 3 took 4 minutes under load.
+    "meshless_levels": [1, 2, 3],
     "meshless": {},                # the scene's model.meshless settings (neighbours, support_scale, ...)
+    # Meshless nodes: "graded_bcc" (meshless_mesh: isotropic cells, graded by doubling every
+    # meshless_layers cells) or "graded_block" (the FEM rows' tensor-product mesh, whose
+    # 0.02 x 0.5 m cells leave moment matrices singular: docs/method.md §19.7).
+    "meshless_nodes": "graded_bcc",
+    "meshless_layers": 3,
+    "meshless_jitter": 0.05,       # node perturbation / cell (makes the Delaunay unique)
     "fine_radius": 2.0,            # fine zone half-width / a_ref
     "growth": 1.5,                 # graded_block growth factor of the cell sizes
     "cell_coarse": 0.5,            # m, far-field cell
@@ -93,7 +103,7 @@ HERTZ = {
     # (reaction oscillating by +-4 % at a / h = 1.3, measured while building this study).
     "face_contacts": False,
 }
-QUICK = {"levels": [2, 3], "reduced_levels": [2], "meshless_levels": [1], "force_fractions": [0.4, 1.0],
+QUICK = {"levels": [2, 3], "reduced_levels": [2], "meshless_levels": [2], "force_fractions": [0.4, 1.0],
          "timing_steps": 2}
 KINDS = ("full", "reduced", "meshless")
 
@@ -139,6 +149,11 @@ def hertz_scene(cfg, level, kind="full"):
             "radius": float(cfg["fine_radius"]) * a, "growth": float(cfg["growth"])}
     if kind not in KINDS:
         raise ReportError(f"hertz: unknown model kind {kind!r} (kinds: {', '.join(KINDS)})")
+    nodes = cfg.get("meshless_nodes", "graded_bcc")
+    if kind == "meshless" and nodes == "graded_bcc":
+        mesh = {"file": str(meshless_mesh_file(cfg, level))}
+    elif kind == "meshless" and nodes != "graded_block":
+        raise ReportError(f"hertz: meshless_nodes must be 'graded_bcc' or 'graded_block', got {nodes!r}")
     model = {"kind": kind, "integrator": dict(STATIC)}
     if kind == "meshless":
         # Same backward Euler as the full model; the one-step/two-step scheme is the
@@ -161,6 +176,42 @@ def hertz_scene(cfg, level, kind="full"):
                                    "face_contacts": bool(cfg["face_contacts"])}},
             "gravity": [0.0, 0.0, 0.0],
             "model": model}
+
+
+def meshless_mesh(cfg, level):
+    """The meshless levels' graded unstructured mesh (mesh.generators.graded_bcc_block): the
+    same block, cells h = a_ref / level (cube edge of the BCC lattice) in the fine zone of
+    half-width fine_radius a_ref round the contact, doubling every `meshless_layers` cells
+    out to cell_coarse. Every cell has aspect ~1, so every node's MLS moment matrix is
+    well conditioned (docs/method.md §19.8)."""
+    from ..mesh.generators import graded_bcc_block
+    L, a = float(cfg["block"]), float(cfg["a_ref"])
+    return graded_bcc_block([L, L, L], float(cfg["cell_coarse"]), a / float(level), [0.0, 0.0, 0.0],
+                            float(cfg["fine_radius"]) * a, origin=[-L / 2, -L / 2, -L],
+                            layers=int(cfg["meshless_layers"]), jitter=float(cfg["meshless_jitter"]))
+
+
+def meshless_mesh_file(cfg, level):
+    """meshless_mesh written once as .vtu under the temp dir, keyed by its parameters and the
+    generator's code (a scene's body.mesh takes a generator of the product's list or a file)."""
+    import hashlib
+    import inspect
+    import json
+    import os
+    import tempfile
+
+    from ..mesh.generators import graded_bcc_block
+    from ..mesh.io import save_mesh
+    keys = ("block", "a_ref", "cell_coarse", "fine_radius", "meshless_layers", "meshless_jitter")
+    tag = hashlib.sha256((json.dumps([float(level)] + [cfg[k] for k in keys], sort_keys=True)
+                          + inspect.getsource(graded_bcc_block)).encode()).hexdigest()[:16]
+    path = Path(tempfile.gettempdir()) / "mdss_hertz_meshes" / f"graded_bcc_{level:g}_{tag}.vtu"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part = path.with_name(f"{path.stem}.{os.getpid()}.vtu")
+        save_mesh(part, meshless_mesh(cfg, level))
+        os.replace(part, path)
+    return path
 
 
 # ---------------------------------------------------------------------- solves
