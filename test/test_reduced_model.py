@@ -61,7 +61,7 @@ def test_free_multidomain_body_conserves_linear_momentum():
 def test_spinning_free_body_angular_momentum_drift_below_one_percent():
     """1000 steps at dt = 1/90 s of a 3-domain body spinning at 2 rad/s, L measured from
     the vertex velocities (deformation included). Full-space backward Euler loses about
-    a third of it on the same body; see reduced_model._predict for how the frames avoid it."""
+    a third of it on the same body; see step.Step._predict for how the frames avoid it."""
     sim = Simulator(_scene(pins=False, domains={"count": 3}, modes=6, integrator={"dt": 1 / 90}))
     sim.model.set_rigid_velocity([0.1, 0.0, 0.0], [0.0, 0.0, 2.0])
     m = sim.model

@@ -1,0 +1,278 @@
+"""One step of the reduced model: the unified implicit solve (docs/method.md §9).
+
+    A Q' = b,    b = Mgen Q + dt (J^T f_ext - G_int + F_fict)         (one Newton iteration)
+    q' = q + dt qd',   c' = c + dt v',   R' = exp([dt w']x) R,   x' = x + dt xd'
+
+Q (n_gen,) stacks per subspace domain [qd_i; v_i; w_i] (a pinned domain: qd_i only), then
+the free full-space DOFs. More Newton iterations solve r(Q) = Mgen (Q - Q_n) + dt (Dgen Q +
+G(s(Q)) - F_n) = 0 with an Armijo line search on the incremental potential; contact
+corrects each Newton step (contact_rows.py). A step's dt, iteration count and fictitious
+treatment come from StepOptions for that step only.
+"""
+import time
+
+import numpy as np
+
+from ..errors import SceneError
+from ..fem.backward_euler import contact_forces, contact_stats
+from ..loads import sparse_loads
+from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
+
+
+class Step:
+    """The reduced step, its prediction of the state from Q, and the start-state evaluation. Mixed into
+    reduced_model.ReducedModel, whose build provides the attributes it reads."""
+
+    def step(self, f_ext, gravity=None, contact=None, options=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
+        as in BackwardEuler.step; options: a StepOptions for this step only (dt, Newton
+        iterations, implicit fictitious forces). The step's terms read dt, the iteration
+        count and the fictitious treatment from the model, so they are set for the duration
+        of the call and always put back."""
+        if options is None:
+            return self._step(f_ext, gravity, contact)
+        saved = (self.dt, self.newton_iterations, self.fictitious)
+        if options.dt:
+            self.dt = float(options.dt)
+        if options.newton_iterations:
+            self.newton_iterations = max(self.newton_iterations, int(options.newton_iterations))
+        if options.fictitious:
+            self.fictitious = options.fictitious
+        try:
+            return self._step(f_ext, gravity, contact)
+        finally:
+            self.dt, self.newton_iterations, self.fictitious = saved
+
+    def _step(self, f_ext, gravity, contact):
+        t0 = time.perf_counter()
+        dt = self.dt
+        gm = self._global_motion()
+        if gm is not None:
+            C, V, W, L = gm
+            # Torque of the loads about the mass centre; uniform gravity has none.
+            loaded, f_loaded = sparse_loads(f_ext)
+            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0)
+            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
+        self._dW = 0.0
+        self._indefinite = False
+        # The applied loads as generalised forces at the step start (no gravity: it is a
+        # potential); their work over the step is dt F_app . Q' (reported for the guard).
+        F_app = self._external(f_ext, None, self.frames, self.q)
+        base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm)
+        Qn = self.get_Q()
+        if gm is not None:
+            Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm))
+        implicit = self.fictitious == "implicit"
+        if implicit:
+            coriolis, centrifugal = self._fictitious_matrices(self.frames)
+            Qn = self._modal_coriolis_rotate(coriolis, Qn)
+        (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
+        M_ss = self._mass_blocks(self.frames, predicted=True)
+        D = (self.alpha * M_ss + self.beta * K_ss,
+             self.beta * K_sI if self.F else None,
+             self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
+        if implicit:
+            # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
+            # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
+            L = self.layout
+            D0 = D[0].copy()
+            D0[L.block_rows, L.block_cols] -= dt * centrifugal[L.block_valid]
+            D = (D0,) + D[1:]
+        Fn = self._external(f_ext, gravity, self.frames, self.q) + \
+            self._explicit_terms(self.frames, self.q, self.qd, coriolis=not implicit)
+        if gm is not None:
+            Fn = Fn + self._global_fictitious(gm)
+        Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
+        # Momentum at the step start: Mgen(t) (Qn + Q_W) - Mgen(t + dt) Q_W, where Q_W carries
+        # the global W on the angular rows (the angular rows hold w - W when gm is used).
+        Q_W = self._rigid_Q((np.zeros(3), np.zeros(3), gm[2]), angular_only=True) if gm is not None else 0.0
+        Mgen0 = (self._mass_blocks(self.frames),) + Mgen[1:]
+        p0 = self._matvec(*Mgen0, Qn + Q_W) - self._matvec(*Mgen, Q_W + np.zeros_like(Qn))
+
+        def residual(Q, G_k):
+            return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
+
+        t_c = time.perf_counter()
+        contact_rows = self._contact_rows(contact, gm) if contact else None
+        contact_s = time.perf_counter() - t_c
+        lam = None
+        if contact_rows is not None and self.scheme == "two_step":
+            raise SceneError("contact is available with the one-step scheme only")
+        r0 = r_last = 0.0
+        if self.scheme == "two_step":
+            Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
+            iterations = 1
+        else:
+            Q = np.zeros_like(Qn)
+            iterations, cuts = 0, 0
+            r = residual(Q, G)
+            r0 = r_last = float(np.linalg.norm(r))
+            for it in range(self.newton_iterations):
+                A = self._system(M_ss, K_ss, K_sI, K_ff, D)
+                dQ = self._solve(*A, -r)
+                if contact_rows is not None:
+                    t_c = time.perf_counter()
+                    dQ, lam = self._contact_solve(contact_rows, Q, dQ)
+                    contact_s += time.perf_counter() - t_c
+                    if it == 0:
+                        # A body at rest pushed only by a collider has r0 = 0: measure the
+                        # tolerance against the contact forces' size instead.
+                        r0 = max(r0, float(np.linalg.norm(self._contact_force(contact_rows, lam))))
+                iterations += 1
+                step_len = 1.0
+                if self.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
+                    phi0 = self._potential(Q, p0, Mgen, D, Fn, energy)
+                    slope = float(r @ dQ)
+                    while step_len > 1e-4:
+                        trial = Q + step_len * dQ
+                        e_t = self._energy_at(trial, base)
+                        if self._potential(trial, p0, Mgen, D, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
+                            break
+                        step_len *= 0.5
+                        cuts += 1
+                Q = Q + step_len * dQ
+                if it + 1 == self.newton_iterations:
+                    break
+                q, _, frames, x_full, _ = self._predict(Q, base)
+                G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
+                r = residual(Q, G)
+                # With contact the converged residual is the contact force C^T lam, not zero.
+                r_c = r - self._contact_force(contact_rows, lam) if contact_rows is not None else r
+                r_last = float(np.linalg.norm(r_c))
+                if r_last <= self.tolerance * max(r0, 1e-300):
+                    break
+        q, qd, frames, x_full, v_full = self._predict(Q, base)
+        self.q, self.qd, self.frames = q, qd, frames
+        if self.F:             # before the contact outputs, which read full-space positions
+            self.x_full, self.v_full = x_full, v_full
+        self.contact = None
+        contact_work = 0.0
+        if contact_rows is not None:
+            verts, _, _, normals, which, friction = contact_rows
+            lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
+            lam_n = lam if lam.ndim == 1 else lam[:, 0]
+            pts = self.positions_of(verts)
+            depth = np.zeros(len(verts))
+            active = lam_n > 0
+            for c_idx, col in enumerate(contact["colliders"]):
+                sel = np.flatnonzero(active & (which == c_idx))
+                if sel.size:
+                    depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
+            w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
+            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
+                                          pts, depth, w, self.dt)
+            # Work of the contact forces over the step in the step's own terms (the guard's
+            # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
+            # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
+            if friction is None:
+                contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
+            else:
+                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[4]))
+        self.last = {"elastic": energy}
+        total = 1e3 * (time.perf_counter() - t0)
+        residual_ratio = r_last / r0 if r0 > 0 else 0.0
+        external_work = dt * float(F_app @ self.get_Q())
+        self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
+                      "contact_work": contact_work,
+                      "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
+                      "domain_ms": timing["domain_ms"],
+                      "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
+                      "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
+                      "angular_momentum_correction": self._dW,
+                      "indefinite_system": self._indefinite,
+                      "domains": len(self.subspace) + len(self.full)}
+        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
+            self.stats.update(contact_stats(self._contact_info))
+        self.timing = {}
+        return self.stats
+
+    def _predict(self, Q, base):
+        """State reached from the step-start state `base` with velocities Q over dt.
+
+        Without a global motion Q holds inertial velocities and frame centres move on
+        straight lines. With one (free bodies, see _global_motion) Q holds velocities
+        relative to the body's mean rigid motion (C, V, W): every frame centre and
+        full-space vertex is carried rigidly by exp(dt W) about C, plus its relative
+        motion, so a rigid spin is integrated exactly instead of spiralling in under
+        backward Euler.
+        """
+        q0, frames0, x0, gm = base
+        dt = self.dt
+        L = self.layout
+        qd = L.gather(Q)
+        q = q0 + dt * qd
+        v = frames0.v.copy()
+        w = frames0.w.copy()
+        v[L.movers] = Q[L.lin_index]
+        w[L.movers] = Q[L.ang_index]
+        frames = frames0.copy()
+        if self.F:
+            v_full = self._full_expand(Q[self.S:])
+        else:
+            v_full = self.v_full
+        if gm is None:
+            frames.advance(v, w, dt, self.movable)
+            x_full = x0 + dt * v_full if self.F else x0
+        else:
+            C, V, W = gm[:3]
+            Rg = exp_so3(dt * W)
+            C1 = C + dt * V
+            mv = self.movable
+            rho = Rg @ (frames0.c[mv] - C + dt * v[mv]).T
+            frames.c[mv] = C1 + rho.T
+            frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
+            frames.w[mv] = W + w[mv] @ Rg.T
+            frames.R[mv] = orthonormalise_batch(Rg @ exp_so3_batch(dt * w[mv]) @ frames0.R[mv])
+            if self.F:
+                rho_f = (x0 - C + dt * v_full) @ Rg.T
+                x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
+                v_full = np.where(self.is_full_vertex[:, None], V + cross(W, rho_f) + v_full @ Rg.T, 0.0)
+            else:
+                x_full = x0
+        # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
+        # inertia at the predicted rotation; re-express that momentum with the inertia the
+        # domain really has after the step, so torque-free domains keep h exactly.
+        mv = L.movers
+        if len(mv):
+            Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
+            h = np.einsum("dij,dj->di", Rp @ L.inertia(q0)[mv] @ Rp.transpose(0, 2, 1),
+                          frames.w[mv] if gm is None else gm[2] + w[mv])
+            R1 = frames.R[mv]
+            frames.w[mv] = np.linalg.solve(R1 @ L.inertia(q)[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
+        if gm is not None:
+            # Carrying the state by exp(dt W) also turns its angular momentum by that
+            # rotation; where L is not parallel to W (products of inertia) this is a
+            # spurious precession, first order in dt. Restore the balance of angular
+            # momentum, L' = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW
+            # about the mass centre (linear momentum unchanged).
+            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full)
+            dW = np.linalg.solve(I1, gm[3] - L1)
+            self._dW = float(np.linalg.norm(dW))
+            frames.v[mv] += cross(dW, frames.c[mv] - C1)
+            frames.w[mv] += dW
+            if self.F:
+                v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
+        frames.w_prev = frames0.w.copy()
+        return q, qd, frames, x_full, v_full
+
+    def _energy_at(self, Q, base):
+        q, _, frames, x_full, _ = self._predict(Q, base)
+        return self._evaluate(q, frames, x_full, want_hessian=False)[4]
+
+    def elastic_energy(self):
+        # The evaluation at the current state is the one the next step starts from: the
+        # stability guard's energy check after a step costs the next step nothing.
+        return self._start_evaluation()[0][4]
+
+    def _start_evaluation(self, take=False):
+        """((G, K_ss, K_sI, K_ff, energy, J, x_I), timing) of _evaluate at the current state,
+        computed once per state: the cache holds the state objects it was computed from
+        (every step and set_state replace them) and is dropped when a step takes it."""
+        # Cutting replaces _full_alive: the forces changed, so it is part of the key.
+        state = (self.q, self.frames, self.x_full, self._full_alive)
+        c = self._start_eval
+        if c is None or not all(a is b for a, b in zip(c[0], state)):
+            result = self._evaluate(self.q, self.frames, self.x_full)
+            c = (state, result, dict(self.timing))
+        self._start_eval = None if take else c
+        return c[1], c[2]
