@@ -222,7 +222,7 @@ def test_two_step_is_block_gauss_seidel_on_the_one_step_system():
     D = (0 * M_ss, None, None)
     Qn = rng.normal(size=m.n_gen) * 0.01
     Fn = np.zeros(m.n_gen)
-    Q = m._two_step(M_ss, K_ss, D, M_ss @ Qn, G, Fn)
+    Q = m._two_step(M_ss, K_ss, D, M_ss @ Qn, G, Fn, m.dt)
     A = M_ss + m.dt ** 2 * K_ss
     b = M_ss @ Qn - m.dt * G
     rigid = np.zeros(m.n_gen, bool)

@@ -23,7 +23,7 @@ class ContactRows:
     """Contact rows of the reduced model and the correction of a Newton step for contact. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
-    def _contact_rows(self, contact, gm):
+    def _contact_rows(self, contact, gm, dt):
         """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which,
         friction), or None. C = dt n^T J_l; under a co-rotating step the rigid part of the
         vertex velocity, V + W x (x - C), is a constant folded into phi_eff. friction is
@@ -65,12 +65,12 @@ class ContactRows:
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         tangents = None
         if not rough:
-            C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts)
+            C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts, dt)
         else:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
             dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
-            C3 = self._rows_along(dirs, verts, xv, starts)
+            C3 = self._rows_along(dirs, verts, xv, starts, dt)
             C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else np.linalg.norm(C, axis=1))
@@ -93,7 +93,7 @@ class ContactRows:
         if gm is not None:
             Cg, Vg, Wg = gm[:3]
             rigid_v = Vg + cross(Wg, xv - Cg)
-            self._contact_rigid = self.dt * np.einsum("li,li->l", normals, rigid_v)
+            self._contact_rigid = dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
         fric = None
@@ -107,12 +107,12 @@ class ContactRows:
             rigid3 = np.zeros((len(verts), 3))                 # dt (n, t1, t2) . (rigid velocity)
             rigid3[:, 0] = self._contact_rigid
             if gm is not None:
-                rigid3[:, 1:] = self.dt * np.einsum("lij,lj->li", tangents, rigid_v)
+                rigid3[:, 1:] = dt * np.einsum("lij,lj->li", tangents, rigid_v)
                 g3[:, 1:] += rigid3[:, 1:]
             fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
         return verts, C, phi_eff, normals, which, fric
 
-    def _rows_along(self, dirs, verts, xv, starts):
+    def _rows_along(self, dirs, verts, xv, starts, dt):
         """Constraint rows (m r, n_gen), row l r + j = dt d^T J at contact l along its j-th
         direction: dirs (k, r, 3) per corner row (weighted: a face point's corners carry
         their barycentric weights), verts (k,) vertex ids, xv (k, 3) their positions, starts
@@ -128,7 +128,7 @@ class ContactRows:
             out = np.zeros((m * r, self.n_gen))
             reconstruct.contact_rows_kernel(np.ascontiguousarray(dirs), vrow, L.U, L.row_domain, self.frames.R,
                                             self.frames.c, np.ascontiguousarray(xv), L.q_index, L.mask,
-                                            self._frame_cols, row_of, self.dt, out)
+                                            self._frame_cols, row_of, dt, out)
             return out
         blocks = []                                          # (corner rows, direction, columns, values)
         sel = np.flatnonzero(vrow >= 0)
@@ -170,7 +170,7 @@ class ContactRows:
         r_idx = row_of[np.concatenate([b[0] for b in blocks])] * r + np.concatenate([b[1] for b in blocks])
         c_idx = np.concatenate([b[2] for b in blocks])
         values = np.concatenate([b[3] for b in blocks])
-        return sp.csr_matrix((self.dt * values, (r_idx, c_idx)), shape=(m * r, self.n_gen))
+        return sp.csr_matrix((dt * values, (r_idx, c_idx)), shape=(m * r, self.n_gen))
 
     def _contact_solve(self, rows, Q, dQ):
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py),

@@ -81,12 +81,12 @@ class FictitiousTerms:
             F[self.S:] = self._full_free(f)
         return F
 
-    def _coriolis_rotate(self, gm, Q_rel):
+    def _coriolis_rotate(self, gm, Q_rel, dt):
         """Exact flow of the Coriolis force -2 m W x v over dt: rotate the relative linear
         velocities by exp(-2 dt W). Explicit Euler would inflate |v_rel| every step (the
         force is gyroscopic) and pump energy and angular momentum into a spinning body;
         the rotation keeps |v_rel| and sum m v_rel = 0 exactly."""
-        Rc = exp_so3(-2.0 * self.dt * gm[2])
+        Rc = exp_so3(-2.0 * dt * gm[2])
         Q = Q_rel.copy()
         lin = self.layout.lin_index
         Q[lin] = Q_rel[lin] @ Rc.T
@@ -108,18 +108,18 @@ class FictitiousTerms:
               - omega_B2_omega(L.B2, omega))
         return C, Kc
 
-    def _modal_coriolis_rotate(self, C, Q):
+    def _modal_coriolis_rotate(self, C, Q, dt):
         """Exact flow of qd' = C qd over dt on the q rows (Mgen is I there): qd <- exp(dt C) qd,
         a rotation because C is skew, so the Coriolis force does no work, as in the continuum
         (explicit Euler multiplies |qd| by sqrt(1 + dt^2 |C|^2) per step). C (D, r_max, r_max)
         from _fictitious_matrices; a fixed domain's block is zero, its exp the identity."""
         L = self.layout
         Q = Q.copy()
-        qd = np.einsum("dab,db->da", sla.expm(self.dt * C), L.gather(Q))
+        qd = np.einsum("dab,db->da", sla.expm(dt * C), L.gather(Q))
         Q[L.q_index[L.mask]] = qd[L.mask]
         return Q
 
-    def _explicit_terms(self, frames, q, qd, coriolis=True):
+    def _explicit_terms(self, frames, q, qd, dt, coriolis=True):
         """Fictitious forces (q rows) at the step start; the gyroscopic term lives in the
         momentum form of the angular rows (see _mass_blocks). coriolis=False leaves out the
         Coriolis term (the implicit treatment rotates qd instead)."""
@@ -128,7 +128,7 @@ class FictitiousTerms:
         if not len(L.movers):
             return F                     # fixed frames: no fictitious forces
         omega = np.einsum("dji,dj->di", frames.R, frames.w)
-        alpha = np.einsum("dji,dj->di", frames.R, frames.w - frames.w_prev) / self.dt
+        alpha = np.einsum("dji,dj->di", frames.R, frames.w - frames.w_prev) / dt
         f = fictitious_forces(L, q, qd if coriolis else np.zeros_like(qd), omega, alpha)
         rows = L.mask & L.movable[:, None]
         F[L.q_index[rows]] = f[rows]

@@ -233,7 +233,9 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
             return self._restore_cubature(*hit)
         tcfg = dict(ccfg.get("training") or {})
         t0 = time.perf_counter()
-        training = generate_training(self, progress=say, seed=int(ccfg.get("seed", 0)), **tcfg)
+        training = generate_training(self, progress=say, seed=int(ccfg.get("seed", 0)),
+                                     reduced_simulation=self.training_simulation, **tcfg)
+        self.reset()                       # a reduced training run stepped this model
         say(f"training: {training.n_poses} poses from the {training.source} model in {training.seconds:.1f} s")
         info = {"samples": samples, "training_source": training.source, "training_poses": training.n_poses,
                 "training_seconds": training.seconds, "domains": []}
@@ -259,6 +261,14 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
             arrays["c_tets"], arrays["c_weights"], arrays["c_pairs"] = self.c_tets, self.c_weights, self.c_pairs
         self.cache.save("cubature", key, arrays, _jsonable(dict(info, unsymmetric=self.unsymmetric)))
         return info
+
+    def training_simulation(self, alpha):
+        """(step(f), positions()) of this model from rest, with the forces it has now (exact,
+        before cubature), mass damping alpha and one Newton iteration: the reduced source of
+        cubature training (training.generate_training). The model's settings are unchanged."""
+        self.reset()
+        terms = self.step_terms(alpha=alpha, newton_iterations=1)
+        return (lambda f: self._step(f, None, None, terms)), self.vertex_positions
 
     def _stack_samples(self):
         """All domains' cubature samples in one array (one kernel call a step), or None when

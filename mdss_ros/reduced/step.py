@@ -10,6 +10,7 @@ corrects each Newton step (contact_rows.py). A step's dt, iteration count and fi
 treatment come from StepOptions for that step only.
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,6 +18,19 @@ from ..errors import SceneError
 from ..fem.backward_euler import contact_forces, contact_stats
 from ..loads import sparse_loads
 from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
+from ..step_options import StepOptions
+
+
+@dataclass(frozen=True)
+class StepTerms:
+    """What one step integrates with, resolved once from the model's settings and the
+    step's StepOptions and passed down, so no step ever changes the model's settings:
+    dt (s), newton_iterations, implicit (fictitious forces), alpha (mass damping 1/s)."""
+
+    dt: float
+    newton_iterations: int
+    implicit: bool
+    alpha: float
 
 
 class Step:
@@ -26,33 +40,31 @@ class Step:
     def step(self, f_ext, gravity=None, contact=None, options=None):
         """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
         as in BackwardEuler.step; options: a StepOptions for this step only (dt, Newton
-        iterations, implicit fictitious forces). The step's terms read dt, the iteration
-        count and the fictitious treatment from the model, so they are set for the duration
-        of the call and always put back."""
-        if options is None:
-            return self._step(f_ext, gravity, contact)
-        saved = (self.dt, self.newton_iterations, self.fictitious)
-        if options.dt:
-            self.dt = float(options.dt)
-        if options.newton_iterations:
-            self.newton_iterations = max(self.newton_iterations, int(options.newton_iterations))
-        if options.fictitious:
-            self.fictitious = options.fictitious
-        try:
-            return self._step(f_ext, gravity, contact)
-        finally:
-            self.dt, self.newton_iterations, self.fictitious = saved
+        iterations, implicit fictitious forces). The model's own settings are not touched:
+        the step reads them through StepTerms."""
+        return self._step(f_ext, gravity, contact, self.step_terms(options))
 
-    def _step(self, f_ext, gravity, contact):
+    def step_terms(self, options=None, alpha=None, newton_iterations=None):
+        """The StepTerms of a step: the model's settings, changed by options (StepOptions:
+        dt, at least options.newton_iterations, fictitious). alpha, newton_iterations:
+        exact values for a training run (training.py), which steps without damping ladders."""
+        o = options or StepOptions()
+        iterations = max(self.newton_iterations, int(o.newton_iterations or 0))
+        return StepTerms(dt=float(o.dt or self.dt),
+                         newton_iterations=int(newton_iterations or iterations),
+                         implicit=(o.fictitious or self.fictitious) == "implicit",
+                         alpha=self.alpha if alpha is None else float(alpha))
+
+    def _step(self, f_ext, gravity, contact, terms):
         t0 = time.perf_counter()
-        dt = self.dt
+        dt = terms.dt
         gm = self._global_motion()
         if gm is not None:
             C, V, W, L = gm
             # Torque of the loads about the mass centre; uniform gravity has none.
             loaded, f_loaded = sparse_loads(f_ext)
             tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0)
-            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * self.alpha))
+            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * terms.alpha))
         self._dW = 0.0
         self._indefinite = False
         # The applied loads as generalised forces at the step start (no gravity: it is a
@@ -61,16 +73,16 @@ class Step:
         base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm)
         Qn = self.get_Q()
         if gm is not None:
-            Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm))
-        implicit = self.fictitious == "implicit"
+            Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm), dt)
+        implicit = terms.implicit
         if implicit:
             coriolis, centrifugal = self._fictitious_matrices(self.frames)
-            Qn = self._modal_coriolis_rotate(coriolis, Qn)
+            Qn = self._modal_coriolis_rotate(coriolis, Qn, dt)
         (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
-        M_ss = self._mass_blocks(self.frames, predicted=True)
-        D = (self.alpha * M_ss + self.beta * K_ss,
+        M_ss = self._mass_blocks(self.frames, predicted_dt=dt)
+        D = (terms.alpha * M_ss + self.beta * K_ss,
              self.beta * K_sI if self.F else None,
-             self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
+             terms.alpha * self.M_ff + self.beta * K_ff if self.F else None)
         if implicit:
             # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
             # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
@@ -79,7 +91,7 @@ class Step:
             D0[L.block_rows, L.block_cols] -= dt * centrifugal[L.block_valid]
             D = (D0,) + D[1:]
         Fn = self._external(f_ext, gravity, self.frames, self.q) + \
-            self._explicit_terms(self.frames, self.q, self.qd, coriolis=not implicit)
+            self._explicit_terms(self.frames, self.q, self.qd, dt, coriolis=not implicit)
         if gm is not None:
             Fn = Fn + self._global_fictitious(gm)
         Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
@@ -93,22 +105,22 @@ class Step:
             return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
 
         t_c = time.perf_counter()
-        contact_rows = self._contact_rows(contact, gm) if contact else None
+        contact_rows = self._contact_rows(contact, gm, dt) if contact else None
         contact_s = time.perf_counter() - t_c
         lam = None
         if contact_rows is not None and self.scheme == "two_step":
             raise SceneError("contact is available with the one-step scheme only")
         r0 = r_last = 0.0
         if self.scheme == "two_step":
-            Q = self._two_step(M_ss, K_ss, D, p0, G, Fn)
+            Q = self._two_step(M_ss, K_ss, D, p0, G, Fn, dt)
             iterations = 1
         else:
             Q = np.zeros_like(Qn)
             iterations, cuts = 0, 0
             r = residual(Q, G)
             r0 = r_last = float(np.linalg.norm(r))
-            for it in range(self.newton_iterations):
-                A = self._system(M_ss, K_ss, K_sI, K_ff, D)
+            for it in range(terms.newton_iterations):
+                A = self._system(M_ss, K_ss, K_sI, K_ff, D, dt)
                 dQ = self._solve(*A, -r)
                 if contact_rows is not None:
                     t_c = time.perf_counter()
@@ -120,20 +132,20 @@ class Step:
                         r0 = max(r0, float(np.linalg.norm(self._contact_force(contact_rows, lam))))
                 iterations += 1
                 step_len = 1.0
-                if self.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
-                    phi0 = self._potential(Q, p0, Mgen, D, Fn, energy)
+                if terms.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
+                    phi0 = self._potential(Q, p0, Mgen, D, Fn, energy, dt)
                     slope = float(r @ dQ)
                     while step_len > 1e-4:
                         trial = Q + step_len * dQ
-                        e_t = self._energy_at(trial, base)
-                        if self._potential(trial, p0, Mgen, D, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
+                        e_t = self._energy_at(trial, base, dt)
+                        if self._potential(trial, p0, Mgen, D, Fn, e_t, dt) <= phi0 + 1e-4 * step_len * slope:
                             break
                         step_len *= 0.5
                         cuts += 1
                 Q = Q + step_len * dQ
-                if it + 1 == self.newton_iterations:
+                if it + 1 == terms.newton_iterations:
                     break
-                q, _, frames, x_full, _ = self._predict(Q, base)
+                q, _, frames, x_full, _ = self._predict(Q, base, dt)
                 G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
                 r = residual(Q, G)
                 # With contact the converged residual is the contact force C^T lam, not zero.
@@ -141,7 +153,7 @@ class Step:
                 r_last = float(np.linalg.norm(r_c))
                 if r_last <= self.tolerance * max(r0, 1e-300):
                     break
-        q, qd, frames, x_full, v_full = self._predict(Q, base)
+        q, qd, frames, x_full, v_full = self._predict(Q, base, dt)
         self.q, self.qd, self.frames = q, qd, frames
         if self.F:             # before the contact outputs, which read full-space positions
             self.x_full, self.v_full = x_full, v_full
@@ -160,7 +172,7 @@ class Step:
                     depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
             w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
             self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
-                                          pts, depth, w, self.dt)
+                                          pts, depth, w, dt)
             # Work of the contact forces over the step in the step's own terms (the guard's
             # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
             # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
@@ -186,7 +198,7 @@ class Step:
         self.timing = {}
         return self.stats
 
-    def _predict(self, Q, base):
+    def _predict(self, Q, base, dt):
         """State reached from the step-start state `base` with velocities Q over dt.
 
         Without a global motion Q holds inertial velocities and frame centres move on
@@ -197,7 +209,6 @@ class Step:
         backward Euler.
         """
         q0, frames0, x0, gm = base
-        dt = self.dt
         L = self.layout
         qd = L.gather(Q)
         q = q0 + dt * qd
@@ -255,8 +266,8 @@ class Step:
         frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
 
-    def _energy_at(self, Q, base):
-        q, _, frames, x_full, _ = self._predict(Q, base)
+    def _energy_at(self, Q, base, dt):
+        q, _, frames, x_full, _ = self._predict(Q, base, dt)
         return self._evaluate(q, frames, x_full, want_hessian=False)[4]
 
     def elastic_energy(self):

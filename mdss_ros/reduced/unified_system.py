@@ -24,7 +24,7 @@ class UnifiedSystem:
     """Generalised mass, the unified matrix, its solve and the two-step foil. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
-    def _mass_blocks(self, frames, predicted=False):
+    def _mass_blocks(self, frames, predicted_dt=None):
         """Mgen's subspace part (S, S) dense. predicted=True puts each domain's inertia at
         the rotation exp(dt w) R it will have after the step: the angular rows are in
         momentum form I(t + dt) w' = I(t) w + dt tau, which conserves angular momentum
@@ -37,13 +37,13 @@ class UnifiedSystem:
         if not len(mv):
             return M
         M[L.lin_index, L.lin_index] = L.total_mass[mv, None]
-        R = L.predicted_rotations(frames.R[mv], frames.w[mv], self.dt) if predicted else frames.R[mv]
+        R = (L.predicted_rotations(frames.R[mv], frames.w[mv], predicted_dt) if predicted_dt
+             else frames.R[mv])
         M[L.ang_index[:, :, None], L.ang_index[:, None, :]] = R @ L.inertia(self.q)[mv] @ R.transpose(0, 2, 1)
         return M
 
-    def _system(self, M_ss, K_ss, K_sI, K_ff, D):
+    def _system(self, M_ss, K_ss, K_sI, K_ff, D, dt):
         """A = Mgen + dt Dgen + dt^2 K as (dense A_ss, dense A_sI, sparse-data A_ff)."""
-        dt = self.dt
         A_ss = M_ss + dt * D[0] + dt * dt * K_ss
         A_sI = dt * D[1] + dt * dt * K_sI if self.F else None
         A_ff = self.M_ff + dt * D[2] + dt * dt * K_ff if self.F else None
@@ -104,10 +104,10 @@ class UnifiedSystem:
     def system_matrix(self):
         """The unified matrix A (n_gen, n_gen) at the current state, dense (diagnostics, tests)."""
         G, K_ss, K_sI, K_ff, _, _, _ = self._evaluate(self.q, self.frames, self.x_full)
-        M_ss = self._mass_blocks(self.frames, predicted=True)
+        M_ss = self._mass_blocks(self.frames, predicted_dt=self.dt)
         D = (self.alpha * M_ss + self.beta * K_ss, self.beta * K_sI if self.F else None,
              self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
-        A_ss, A_sI, A_ff = self._system(M_ss, K_ss, K_sI, K_ff, D)
+        A_ss, A_sI, A_ff = self._system(M_ss, K_ss, K_sI, K_ff, D, self.dt)
         if not self.F:
             return A_ss
         A = np.zeros((self.n_gen, self.n_gen))
@@ -117,18 +117,17 @@ class UnifiedSystem:
         A[self.S:, self.S:] = self.ff_pattern.matrix(A_ff).toarray()
         return A
 
-    def _potential(self, Q, p0, Mgen, D, Fn, elastic):
+    def _potential(self, Q, p0, Mgen, D, Fn, elastic, dt):
         """Incremental potential whose gradient is the residual: 1/2 Q.Mgen Q - p0.Q
         + dt/2 Q.D Q + E(s(Q)) - dt Fn.Q."""
-        return (0.5 * Q @ self._matvec(*Mgen, Q) - p0 @ Q + 0.5 * self.dt * Q @ self._matvec(*D, Q)
-                + elastic - self.dt * Fn @ Q)
+        return (0.5 * Q @ self._matvec(*Mgen, Q) - p0 @ Q + 0.5 * dt * Q @ self._matvec(*D, Q)
+                + elastic - dt * Fn @ Q)
 
-    def _two_step(self, M_ss, K_ss, D, p0, G, Fn):
+    def _two_step(self, M_ss, K_ss, D, p0, G, Fn, dt):
         """The paper's foil: rigid DOFs with deformation frozen, then deformation with
         frames frozen: block Gauss-Seidel on the one-step system."""
         if self.F:
             raise SceneError("the two-step scheme is available for subspace domains only")
-        dt = self.dt
         A = M_ss + dt * D[0] + dt * dt * K_ss
         b = p0 + dt * (Fn - G)
         Qn = np.linalg.solve(M_ss, p0)         # the step-start velocities the paper freezes
