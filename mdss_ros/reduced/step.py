@@ -19,6 +19,7 @@ from ..fem.backward_euler import contact_forces, contact_stats
 from ..loads import sparse_loads
 from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
 from ..step_options import StepOptions
+from .unified_system import StepSystem
 
 
 @dataclass(frozen=True)
@@ -79,30 +80,30 @@ class Step:
             coriolis, centrifugal = self._fictitious_matrices(self.frames)
             Qn = self._modal_coriolis_rotate(coriolis, Qn, dt)
         (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
-        M_ss = self._mass_blocks(self.frames, predicted_dt=dt)
-        D = (terms.alpha * M_ss + self.beta * K_ss,
-             self.beta * K_sI if self.F else None,
-             terms.alpha * self.M_ff + self.beta * K_ff if self.F else None)
-        if implicit:
-            # Centrifugal force K_cf q at the end of the step: K_cf q_n (explicit part, in Fn)
-            # + dt K_cf qd', a velocity term, hence in D (it enters A as -dt^2 K_cf).
-            L = self.layout
-            D0 = D[0].copy()
-            D0[L.block_rows, L.block_cols] -= dt * centrifugal[L.block_valid]
-            D = (D0,) + D[1:]
+        # Dgen = alpha Mgen + beta K (step start); with implicit fictitious forces the
+        # centrifugal force K_cf q at the end of the step, K_cf q_n (explicit, in Fn) + dt
+        # K_cf qd', is a velocity term, hence in Dgen (it enters A as -dt^2 K_cf).
+        inertia = self.layout.inertia(self.q)
+        mass = self._subspace_mass(self.frames, predicted_dt=dt, inertia=inertia)
+        system = StepSystem(self, mass, dt, terms.alpha, self.beta, (K_ss, K_sI, K_ff),
+                            centrifugal if implicit else None)
         Fn = self._external(f_ext, gravity, self.frames, self.q) + \
             self._explicit_terms(self.frames, self.q, self.qd, dt, coriolis=not implicit)
         if gm is not None:
             Fn = Fn + self._global_fictitious(gm)
-        Mgen = (M_ss, np.zeros_like(K_sI) if self.F else None, self.M_ff if self.F else None)
         # Momentum at the step start: Mgen(t) (Qn + Q_W) - Mgen(t + dt) Q_W, where Q_W carries
         # the global W on the angular rows (the angular rows hold w - W when gm is used).
-        Q_W = self._rigid_Q((np.zeros(3), np.zeros(3), gm[2]), angular_only=True) if gm is not None else 0.0
-        Mgen0 = (self._mass_blocks(self.frames),) + Mgen[1:]
-        p0 = self._matvec(*Mgen0, Qn + Q_W) - self._matvec(*Mgen, Q_W + np.zeros_like(Qn))
+        mass0 = self._subspace_mass(self.frames, inertia=inertia)
+        S = self.S
+        p0 = system.mass_matvec(Qn)                   # the full-space rows: M_ff Qn
+        if gm is not None:
+            Q_W = self._rigid_Q((np.zeros(3), np.zeros(3), gm[2]), angular_only=True)[:S]
+            p0[:S] = mass0.matvec(Qn[:S] + Q_W) - mass.matvec(Q_W)
+        else:
+            p0[:S] = mass0.matvec(Qn[:S])
 
         def residual(Q, G_k):
-            return self._matvec(*Mgen, Q) - p0 + dt * (self._matvec(*D, Q) + G_k - Fn)
+            return system.mass_matvec(Q) - p0 + dt * (system.damping_matvec(Q) + G_k - Fn)
 
         t_c = time.perf_counter()
         contact_rows = self._contact_rows(contact, gm, dt) if contact else None
@@ -112,15 +113,15 @@ class Step:
             raise SceneError("contact is available with the one-step scheme only")
         r0 = r_last = 0.0
         if self.scheme == "two_step":
-            Q = self._two_step(M_ss, K_ss, D, p0, G, Fn, dt)
+            Q = self._two_step(mass.dense(), K_ss, (system.damping_dense(),), p0, G, Fn, dt)
             iterations = 1
         else:
             Q = np.zeros_like(Qn)
             iterations, cuts = 0, 0
-            r = residual(Q, G)
+            r = dt * (G - Fn) - p0                    # the residual at Q = 0
             r0 = r_last = float(np.linalg.norm(r))
             for it in range(terms.newton_iterations):
-                A = self._system(M_ss, K_ss, K_sI, K_ff, D, dt)
+                A = system.matrix(K_ss, K_sI, K_ff)
                 dQ = self._solve(*A, -r)
                 if contact_rows is not None:
                     t_c = time.perf_counter()
@@ -133,12 +134,12 @@ class Step:
                 iterations += 1
                 step_len = 1.0
                 if terms.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
-                    phi0 = self._potential(Q, p0, Mgen, D, Fn, energy, dt)
+                    phi0 = system.potential(Q, p0, Fn, energy)
                     slope = float(r @ dQ)
                     while step_len > 1e-4:
                         trial = Q + step_len * dQ
                         e_t = self._energy_at(trial, base, dt)
-                        if self._potential(trial, p0, Mgen, D, Fn, e_t, dt) <= phi0 + 1e-4 * step_len * slope:
+                        if system.potential(trial, p0, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
                             break
                         step_len *= 0.5
                         cuts += 1

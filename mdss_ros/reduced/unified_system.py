@@ -8,8 +8,13 @@ full-space block A_ff (the data of ff_pattern). Mgen = blockdiag(I_r, m I3, I(wo
 on the subspace rows, lumped masses on the full-space rows. Without full-space domains A
 is solved by the block Cholesky (block_cholesky.py), by LU when it is indefinite or
 unsymmetric; with them by a sparse solver over the joint system.
+
+Mgen is kept as its structure (SubspaceMass): a step's mass products and its share of A
+cost O(S), and A_ss is formed from K in one scaled pass (StepSystem.matrix). Formed as
+dense (S, S) sums, they were about ten passes over an (S, S) array a step.
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
@@ -20,34 +25,135 @@ from ..errors import SceneError
 from ..linear_solver import NotPositiveDefinite
 
 
+@dataclass(frozen=True)
+class SubspaceMass:
+    """Mgen on the S subspace rows as its structure: 1 on the modal rows (n_modal,), m_k I3
+    on the movers' linear rows lin_index (M, 3), the world inertia I_k (M, 3, 3) on their
+    angular rows ang_index (M, 3); mass (M,). Every subspace row is one of these."""
+
+    S: int
+    modal: np.ndarray
+    lin_index: np.ndarray
+    mass: np.ndarray
+    ang_index: np.ndarray
+    inertia: np.ndarray
+
+    def matvec(self, x):
+        """Mgen x on the subspace rows: x (S,) -> (S,)."""
+        out = np.empty_like(x)
+        out[self.modal] = x[self.modal]
+        out[self.lin_index] = self.mass[:, None] * x[self.lin_index]
+        out[self.ang_index] = np.einsum("mij,mj->mi", self.inertia, x[self.ang_index])
+        return out
+
+    def add_to(self, A, scale):
+        """A (S, S) += scale Mgen, in place; returns A."""
+        A[self.modal, self.modal] += scale
+        A[self.lin_index, self.lin_index] += scale * self.mass[:, None]
+        A[self.ang_index[:, :, None], self.ang_index[:, None, :]] += scale * self.inertia
+        return A
+
+    def dense(self):
+        """Mgen's subspace part as a dense (S, S) array."""
+        return self.add_to(np.zeros((self.S, self.S)), 1.0)
+
+
+class StepSystem:
+    """The unified system of one step (docs/method.md §9.2, §9.3, §9.5):
+
+        Mgen Q,   Dgen Q = alpha Mgen Q + beta K0 Q - dt K_cf Q,
+        A(K) = (1 + dt alpha) Mgen + dt beta K0 + dt^2 K - dt^2 K_cf
+
+    mass: SubspaceMass at the predicted rotations; M_ff (full-space lumped masses, ff_pattern
+    data) or None; K0 = (K_ss, K_sI, K_ff) the tangent at the step start (Dgen keeps it for
+    the whole step); centrifugal (D, r_max, r_max) the implicit centrifugal stiffness on the
+    modal blocks, or None; matvec: the model's product with (A_ss, A_sI, A_ff) parts."""
+
+    def __init__(self, model, mass, dt, alpha, beta, K0, centrifugal=None):
+        self.model, self.mass, self.dt, self.alpha, self.beta = model, mass, dt, alpha, beta
+        self.K0, self.centrifugal = K0, centrifugal
+        self.F = model.F
+
+    def mass_matvec(self, Q):
+        """Mgen Q (n_gen,)."""
+        m = self.model
+        out = np.empty_like(Q)
+        out[:m.S] = self.mass.matvec(Q[:m.S])
+        if self.F:
+            out[m.S:] = m.ff_pattern.matrix(m.M_ff) @ Q[m.S:]
+        return out
+
+    def damping_matvec(self, Q):
+        """Dgen Q (n_gen,)."""
+        out = self.alpha * self.mass_matvec(Q)
+        if self.beta:
+            K_ss, K_sI, K_ff = self.K0
+            out += self.beta * self.model._matvec(K_ss, K_sI, K_ff, Q)
+        if self.centrifugal is not None:
+            L = self.model.layout
+            out[L.q_index[L.mask]] -= self.dt * np.einsum("dab,db->da", self.centrifugal, L.gather(Q))[L.mask]
+        return out
+
+    def matrix(self, K_ss, K_sI, K_ff):
+        """A = (A_ss dense (S, S), A_sI dense or None, A_ff sparse data or None) at tangent K."""
+        dt, K0 = self.dt, self.K0
+        if K_ss is K0[0]:
+            A_ss = (dt * dt + dt * self.beta) * K_ss            # the first iteration: one pass
+        else:
+            A_ss = dt * dt * K_ss
+            if self.beta:
+                A_ss += (dt * self.beta) * K0[0]
+        self.mass.add_to(A_ss, 1.0 + dt * self.alpha)
+        if self.centrifugal is not None:
+            L = self.model.layout
+            A_ss[L.block_rows, L.block_cols] -= dt * dt * self.centrifugal[L.block_valid]
+        if not self.F:
+            return A_ss, None, None
+        A_sI = dt * self.beta * K0[1] + dt * dt * K_sI
+        A_ff = (1.0 + dt * self.alpha) * self.model.M_ff + dt * self.beta * K0[2] + dt * dt * K_ff
+        return A_ss, A_sI, A_ff
+
+    def damping_dense(self):
+        """Dgen's subspace part (S, S) dense (the two-step foil)."""
+        D = self.alpha * self.mass.dense() + self.beta * self.K0[0]
+        if self.centrifugal is not None:
+            L = self.model.layout
+            D[L.block_rows, L.block_cols] -= self.dt * self.centrifugal[L.block_valid]
+        return D
+
+    def potential(self, Q, p0, Fn, elastic):
+        """Incremental potential whose gradient is the residual: 1/2 Q.Mgen Q - p0.Q
+        + dt/2 Q.Dgen Q + E(s(Q)) - dt Fn.Q."""
+        dt = self.dt
+        return (0.5 * Q @ self.mass_matvec(Q) - p0 @ Q + 0.5 * dt * Q @ self.damping_matvec(Q)
+                + elastic - dt * Fn @ Q)
+
+
 class UnifiedSystem:
     """Generalised mass, the unified matrix, its solve and the two-step foil. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
-    def _mass_blocks(self, frames, predicted_dt=None):
-        """Mgen's subspace part (S, S) dense. predicted=True puts each domain's inertia at
-        the rotation exp(dt w) R it will have after the step: the angular rows are in
+    def _subspace_mass(self, frames, predicted_dt=None, inertia=None):
+        """Mgen's subspace part as a SubspaceMass. predicted_dt puts each domain's inertia
+        at the rotation exp(dt w) R it will have after the step: the angular rows are in
         momentum form I(t + dt) w' = I(t) w + dt tau, which conserves angular momentum
-        where an explicit gyroscopic term -w x I w gains it."""
+        where an explicit gyroscopic term -w x I w gains it. inertia: the body-frame
+        inertia (D, 3, 3) at the state's q when the caller has it."""
         L = self.layout
         mv = L.movers
-        M = np.zeros((self.S, self.S))
-        modal = L.q_index[L.mask]
-        M[modal, modal] = 1.0
-        if not len(mv):
-            return M
-        M[L.lin_index, L.lin_index] = L.total_mass[mv, None]
-        R = (L.predicted_rotations(frames.R[mv], frames.w[mv], predicted_dt) if predicted_dt
-             else frames.R[mv])
-        M[L.ang_index[:, :, None], L.ang_index[:, None, :]] = R @ L.inertia(self.q)[mv] @ R.transpose(0, 2, 1)
-        return M
+        if len(mv):
+            R = (L.predicted_rotations(frames.R[mv], frames.w[mv], predicted_dt) if predicted_dt
+                 else frames.R[mv])
+            I_body = (L.inertia(self.q) if inertia is None else inertia)[mv]
+            I_world = R @ I_body @ R.transpose(0, 2, 1)
+        else:
+            I_world = np.zeros((0, 3, 3))
+        return SubspaceMass(S=self.S, modal=L.modal_rows, lin_index=L.lin_index,
+                            mass=L.total_mass[mv], ang_index=L.ang_index, inertia=I_world)
 
-    def _system(self, M_ss, K_ss, K_sI, K_ff, D, dt):
-        """A = Mgen + dt Dgen + dt^2 K as (dense A_ss, dense A_sI, sparse-data A_ff)."""
-        A_ss = M_ss + dt * D[0] + dt * dt * K_ss
-        A_sI = dt * D[1] + dt * dt * K_sI if self.F else None
-        A_ff = self.M_ff + dt * D[2] + dt * dt * K_ff if self.F else None
-        return A_ss, A_sI, A_ff
+    def _mass_blocks(self, frames, predicted_dt=None):
+        """Mgen's subspace part (S, S) dense (see _subspace_mass)."""
+        return self._subspace_mass(frames, predicted_dt).dense()
 
     def _solve(self, A_ss, A_sI, A_ff, rhs):
         t0 = time.perf_counter()
@@ -104,10 +210,9 @@ class UnifiedSystem:
     def system_matrix(self):
         """The unified matrix A (n_gen, n_gen) at the current state, dense (diagnostics, tests)."""
         G, K_ss, K_sI, K_ff, _, _, _ = self._evaluate(self.q, self.frames, self.x_full)
-        M_ss = self._mass_blocks(self.frames, predicted_dt=self.dt)
-        D = (self.alpha * M_ss + self.beta * K_ss, self.beta * K_sI if self.F else None,
-             self.alpha * self.M_ff + self.beta * K_ff if self.F else None)
-        A_ss, A_sI, A_ff = self._system(M_ss, K_ss, K_sI, K_ff, D, self.dt)
+        system = StepSystem(self, self._subspace_mass(self.frames, predicted_dt=self.dt), self.dt, self.alpha,
+                            self.beta, (K_ss, K_sI, K_ff))
+        A_ss, A_sI, A_ff = system.matrix(K_ss, K_sI, K_ff)
         if not self.F:
             return A_ss
         A = np.zeros((self.n_gen, self.n_gen))
@@ -116,12 +221,6 @@ class UnifiedSystem:
         A[self.S + self.iface_full_cols, :self.S] = A_sI.T
         A[self.S:, self.S:] = self.ff_pattern.matrix(A_ff).toarray()
         return A
-
-    def _potential(self, Q, p0, Mgen, D, Fn, elastic, dt):
-        """Incremental potential whose gradient is the residual: 1/2 Q.Mgen Q - p0.Q
-        + dt/2 Q.D Q + E(s(Q)) - dt Fn.Q."""
-        return (0.5 * Q @ self._matvec(*Mgen, Q) - p0 @ Q + 0.5 * dt * Q @ self._matvec(*D, Q)
-                + elastic - dt * Fn @ Q)
 
     def _two_step(self, M_ss, K_ss, D, p0, G, Fn, dt):
         """The paper's foil: rigid DOFs with deformation frozen, then deformation with
