@@ -420,6 +420,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         # back or replayed step repeats bit for bit.
         self._contact_history, self._contact_rows_seen, self._contact_lam = [], None, None
         self._start_eval = None         # the evaluation at the current state (_start_evaluation)
+        self._positions_kept = []       # positions_of at the current state, two ids arrays
 
     def _full_rows(self, a):
         """A copy of x_full or v_full (n_verts, 3) for a snapshot. Without full-space
@@ -488,10 +489,26 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
 
     # ------------------------------------------------------------------ positions
     def positions_of(self, ids, q=None, frames=None, x_full=None):
-        """World positions (len(ids), 3) of the given global vertex ids (reconstruct.py)."""
-        return reconstruct.positions(self.layout, ids, self.q if q is None else q,
-                                     self.frames if frames is None else frames,
-                                     self.x_full if x_full is None else x_full)
+        """World positions (len(ids), 3) of the given global vertex ids (reconstruct.py).
+
+        At the current state the result is kept, read-only, for the same ids array: the
+        surface a step's contact search reads at its start is the one the last step's
+        output read at its end (hammock: one of its two surface passes a step). The state
+        is compared by value (q and the frames are small, and tests write them in place);
+        a model with full-space domains, whose state holds every vertex, is not kept."""
+        if q is not None or frames is not None or x_full is not None or self.F:
+            return reconstruct.positions(self.layout, ids, self.q if q is None else q,
+                                         self.frames if frames is None else frames,
+                                         self.x_full if x_full is None else x_full)
+        for k_ids, k_q, k_c, k_R, x in self._positions_kept:
+            if (k_ids is ids and np.array_equal(k_q, self.q) and np.array_equal(k_c, self.frames.c)
+                    and np.array_equal(k_R, self.frames.R)):
+                return x
+        x = reconstruct.positions(self.layout, ids, self.q, self.frames, self.x_full)
+        x.flags.writeable = False
+        key = (ids, self.q.copy(), self.frames.c.copy(), self.frames.R.copy())
+        self._positions_kept = [key + (x,)] + self._positions_kept[:1]
+        return x
 
     def watch(self, ids):
         """Kept for the Simulator's interface: positions_of is one compiled pass for any ids."""
