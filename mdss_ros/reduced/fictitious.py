@@ -27,16 +27,16 @@ class FictitiousTerms:
     """Fictitious forces and the free body's mean rigid motion, for ReducedModel. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
-    def _global_motion(self):
+    def _global_motion(self, inertia=None):
         """(C, V, W, L): mass centre, velocity, angular velocity and angular momentum of
         the whole body, W fitted to L (frames and full-space vertices), or None for a body
         held by pins."""
         if self.body.pinned.size or not self.movable.all():
             return None
-        C, V, L, I = self._momentum(self.frames, self.q, self.x_full, self.v_full)
+        C, V, L, I = self._momentum(self.frames, self.q, self.x_full, self.v_full, inertia)
         return C, V, np.linalg.solve(I, L), L
 
-    def _momentum(self, fr, q, x_full, v_full):
+    def _momentum(self, fr, q, x_full, v_full, inertia=None):
         """Mass centre C, its velocity V, angular momentum L about C and inertia I (3, 3)
         of a state, from the domain frames (the deformation's own angular momentum is
         second order because U is mass-orthogonal to rotations) and full-space vertices."""
@@ -48,7 +48,7 @@ class FictitiousTerms:
         C = ((m_d[:, None] * fr.c).sum(0) + (m_f[:, None] * x_f).sum(0)) / m
         V = ((m_d[:, None] * fr.v).sum(0) + (m_f[:, None] * v_f).sum(0)) / m
         rho, rho_f = fr.c - C, x_f - C
-        I_d = fr.R @ self.layout.inertia(q) @ fr.R.transpose(0, 2, 1)
+        I_d = fr.R @ (self.layout.inertia(q) if inertia is None else inertia) @ fr.R.transpose(0, 2, 1)
         I = (I_d.sum(0) + ((m_d * (rho * rho).sum(1)).sum() + (m_f * (rho_f * rho_f).sum(1)).sum()) * np.eye(3)
              - np.einsum("i,ij,ik->jk", m_d, rho, rho) - np.einsum("i,ij,ik->jk", m_f, rho_f, rho_f))
         L = (cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)

@@ -59,7 +59,9 @@ class Step:
     def _step(self, f_ext, gravity, contact, terms):
         t0 = time.perf_counter()
         dt = terms.dt
-        gm = self._global_motion()
+        # Body-frame inertia (D, 3, 3) at the step start, for the mass blocks and the prediction.
+        inertia = self.layout.inertia(self.q) if len(self.layout.movers) else None
+        gm = self._global_motion(inertia)
         if gm is not None:
             C, V, W, L = gm
             # Torque of the loads about the mass centre; uniform gravity has none.
@@ -71,7 +73,7 @@ class Step:
         # The applied loads as generalised forces at the step start (no gravity: it is a
         # potential); their work over the step is dt F_app . Q' (reported for the guard).
         F_app = self._external(f_ext, None, self.frames, self.q)
-        base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm)
+        base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm, inertia)
         Qn = self.get_Q()
         if gm is not None:
             Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm), dt)
@@ -83,7 +85,6 @@ class Step:
         # Dgen = alpha Mgen + beta K (step start); with implicit fictitious forces the
         # centrifugal force K_cf q at the end of the step, K_cf q_n (explicit, in Fn) + dt
         # K_cf qd', is a velocity term, hence in Dgen (it enters A as -dt^2 K_cf).
-        inertia = self.layout.inertia(self.q)
         mass = self._subspace_mass(self.frames, predicted_dt=dt, inertia=inertia)
         system = StepSystem(self, mass, dt, terms.alpha, self.beta, (K_ss, K_sI, K_ff),
                             centrifugal if implicit else None)
@@ -209,7 +210,7 @@ class Step:
         motion, so a rigid spin is integrated exactly instead of spiralling in under
         backward Euler.
         """
-        q0, frames0, x0, gm = base
+        q0, frames0, x0, gm, inertia0 = base
         L = self.layout
         qd = L.gather(Q)
         q = q0 + dt * qd
@@ -245,19 +246,20 @@ class Step:
         # inertia at the predicted rotation; re-express that momentum with the inertia the
         # domain really has after the step, so torque-free domains keep h exactly.
         mv = L.movers
+        inertia = L.inertia(q) if len(mv) else None       # a pinned body's frames do not turn
         if len(mv):
             Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
-            h = np.einsum("dij,dj->di", Rp @ L.inertia(q0)[mv] @ Rp.transpose(0, 2, 1),
+            h = np.einsum("dij,dj->di", Rp @ inertia0[mv] @ Rp.transpose(0, 2, 1),
                           frames.w[mv] if gm is None else gm[2] + w[mv])
             R1 = frames.R[mv]
-            frames.w[mv] = np.linalg.solve(R1 @ L.inertia(q)[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
+            frames.w[mv] = np.linalg.solve(R1 @ inertia[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
         if gm is not None:
             # Carrying the state by exp(dt W) also turns its angular momentum by that
             # rotation; where L is not parallel to W (products of inertia) this is a
             # spurious precession, first order in dt. Restore the balance of angular
             # momentum, L' = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW
             # about the mass centre (linear momentum unchanged).
-            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full)
+            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full, inertia)
             dW = np.linalg.solve(I1, gm[3] - L1)
             self._dW = float(np.linalg.norm(dW))
             frames.v[mv] += cross(dW, frames.c[mv] - C1)
