@@ -28,7 +28,7 @@ A rejected step is rolled back to the snapshot taken before it (model state, col
 sweep bookkeeping) and retried along a ladder of attempts, cheapest first: the same dt
 with `newton_iterations` Newton iterations (backward Euler solved properly instead of
 linearly implicit), for a reduced model whose fictitious forces are explicit (the papers')
-then also with implicit fictitious forces (ReducedModel.fictitious = "implicit"), then dt
+then also with implicit fictitious forces (StepOptions.fictitious = "implicit"), then dt
 split into 2, 4, ... `max_substeps` sub-steps (each checked on its own) with all of that.
 On that last rung a sub-step whose only hard signs are "energy" / "energy drift" gets an
 energy projection (`project_energy`, in the spirit of Dinev, Liu and Kavan 2018,

@@ -38,7 +38,8 @@ STAGE_CODE = {
                  "fem/backward_euler.py", "precompute.py",
                  "reduced/reduced_model.py::ReducedModel._build_cubature",
                  "reduced/reduced_model.py::ReducedModel._restore_cubature",
-                 "reduced/reduced_model.py::ReducedModel._build_interface_cubature"],
+                 "reduced/reduced_model.py::ReducedModel._build_interface_cubature",
+                 "reduced/reduced_model.py::ReducedModel.training_simulation"],
 }
 
 

@@ -337,7 +337,7 @@ class Simulator:
             # Only a collider whose sweep can reach the body needs sub-steps (they change
             # the trajectory, so a far-away collider must not trigger them).
             surface = self.surface_positions() if surface is None else surface
-            if c.signed_distance(surface)[0].min() < travel + spec["margin"]:
+            if c.distance(surface).min() < travel + spec["margin"]:
                 moved = max(moved, travel)
         n_sub = int(min(self.MAX_SUBSTEPS, max(1, np.ceil(moved / (self.MAX_COLLIDER_TRAVEL * spec["margin"])))))
         options = options or StepOptions()

@@ -30,6 +30,31 @@ def test_normal_is_gradient_of_signed_distance(shape):
     np.testing.assert_allclose(grad[smooth], n[smooth], atol=1e-5)
 
 
+@pytest.mark.parametrize("shape", list(SPECS))
+def test_distance_is_the_phi_of_signed_distance(shape):
+    c = make_collider("c", SPECS[shape])
+    c.set_pose([0.1, -0.2, 0.3], quat_from_matrix(exp_so3(np.array([0.3, -0.5, 0.8]))))
+    p = c.position + np.random.default_rng(1).uniform(-0.8, 0.8, size=(300, 3))
+    np.testing.assert_allclose(c.distance(p), c.signed_distance(p)[0], rtol=0, atol=1e-14)
+
+
+def test_triangle_culling_kernels_match_numpy():
+    """unilateral.longest_edge_squared and triangles_near_segment against numpy on a random
+    soup, for a sphere (a == b) and a segment."""
+    from mdss_ros.contact.unilateral import closest_points_on_segment, longest_edge_squared, triangles_near_segment
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-1, 1, size=(200, 3))
+    tri = rng.integers(0, 200, size=(500, 3))
+    e = np.concatenate([x[tri[:, (k + 1) % 3]] - x[tri[:, k]] for k in range(3)])
+    assert longest_edge_squared(x, tri) == pytest.approx((e * e).sum(1).max(), rel=1e-15)
+    for a, b in ((np.array([0.1, 0.2, 0.0]),) * 2, (np.array([-0.5, 0.0, 0.2]), np.array([0.4, 0.3, -0.1]))):
+        d = np.linalg.norm(x - closest_points_on_segment(a, b, x), axis=1)
+        for reach in (0.2, 0.5):
+            want = np.flatnonzero(d[tri].min(axis=1) < reach)
+            assert 0 < len(want) < len(tri)
+            np.testing.assert_array_equal(triangles_near_segment(x, tri, a, b, reach), want)
+
+
 def test_closed_form_distances():
     s = make_collider("s", {"shape": "sphere", "radius": 0.5, "position": [1, 0, 0]})
     phi, n = s.signed_distance(np.array([[3.0, 0, 0], [1.0, 0.25, 0]]))

@@ -175,3 +175,34 @@ def test_cubature_report_quick(tmp_path):
         assert errs[-1] < errs[0]
     for it in result["interfaces"]:
         assert np.mean([e["mean"] for e in it["nonuniform"]]) <= np.mean([e["mean"] for e in it["uniform"]])
+
+
+def test_reduced_training_steps_through_the_step_function_and_leaves_the_model_as_it_was(small):
+    """source "reduced": the training run is the model's own exact-force step with the
+    training's damping and one Newton iteration, given to generate_training as a function
+    (ReducedModel.training_simulation); the model's settings and state are untouched."""
+    sim, _ = small
+    m = sim.model
+    own = m.newton_iterations
+    m.newton_iterations = 3
+    before = (m.alpha, m.newton_iterations, m.dt, m.q.copy())
+    training = generate_training(m, n_poses=6, stride=2, hold=4, force_scale=2.0, seed=1, source="reduced",
+                                 alpha=2.0, reduced_simulation=m.training_simulation)
+    assert training.source == "reduced" and training.n_poses == 6
+    assert all(np.abs(q).max() > 1e-5 for q in training.q)
+    assert (m.alpha, m.newton_iterations, m.dt) == before[:3]
+    # The same run by hand: one Newton iteration at alpha 2 from rest reaches the same poses.
+    step, positions = m.training_simulation(2.0)
+    assert m.step_terms(alpha=2.0, newton_iterations=1).newton_iterations == 1
+    from mdss_ros.reduced.training import random_patch_forces
+    rng = np.random.default_rng(1)
+    f = None
+    for k in range(4):
+        if k % 4 == 0:
+            f = random_patch_forces(rng, m, m.body.surface.vertex_ids, 2.0)
+        step(f)
+    np.testing.assert_array_equal(positions(), training.positions[1])
+    with pytest.raises(ValueError, match="reduced_simulation"):
+        generate_training(m, n_poses=2, source="reduced")
+    m.newton_iterations = own
+    m.reset()

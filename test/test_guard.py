@@ -220,7 +220,7 @@ def test_fictitious_matrices_split_the_explicit_force():
     np.testing.assert_allclose(K, K.transpose(0, 2, 1), atol=1e-12 * np.abs(K).max())
     assert np.linalg.eigvalsh(K).min() > -1e-9 * np.abs(K).max()
     Q = rng.normal(size=m.n_gen)
-    Qr = m._modal_coriolis_rotate(m._fictitious_matrices(m.frames)[0], Q)
+    Qr = m._modal_coriolis_rotate(m._fictitious_matrices(m.frames)[0], Q, m.dt)
     assert not np.allclose(Qr, Q)
     np.testing.assert_allclose(np.linalg.norm(Qr), np.linalg.norm(Q), rtol=1e-12)
 

@@ -87,7 +87,7 @@ class Collider:
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if len(points) == 0:
             return 0.0, 0, -1
-        phi = self.signed_distance(points)[0]
+        phi = self.distance(points)
         inside = phi < -tol
         if not inside.any():
             return 0.0, 0, -1
@@ -105,6 +105,15 @@ class Collider:
             half = self.half_height * self.rotation[:, 2]
             return np.stack([self.position - half, self.position, self.position + half])
         return np.zeros((0, 3))
+
+    def distance(self, points):
+        """phi (n,) alone at world points (n, 3). The candidate search reads it at every
+        surface vertex each step and needs no normals there (for a sphere the normals were
+        half of that pass); other shapes take signed_distance's phi."""
+        if self.shape == "sphere":
+            d = np.asarray(points, dtype=np.float64) - self.position
+            return np.sqrt(np.einsum("ij,ij->i", d, d)) - self.radius
+        return self.signed_distance(points)[0]
 
     def signed_distance(self, points):
         """phi (n,) and outward normals (n, 3) at world points (n, 3)."""

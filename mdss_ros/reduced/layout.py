@@ -12,6 +12,7 @@ domain, its frame's linear and angular velocities v_k, w_k (docs/method.md §9):
 
     q_index (D, r_max)      generalised row of each modal coordinate, -1 for padding
     mask (D, r_max)         q_index >= 0
+    modal_rows (n_modal,)   q_index[mask]: every modal row
     movers (M,)             the movable domains; lin_index, ang_index (M, 3) rows of v, w
 
 Per domain (docs/method.md §7, reduced/frames.py for the tensors):
@@ -44,6 +45,7 @@ class DomainLayout:
     movable: np.ndarray
     q_index: np.ndarray
     mask: np.ndarray
+    modal_rows: np.ndarray
     movers: np.ndarray
     lin_index: np.ndarray
     ang_index: np.ndarray
@@ -103,7 +105,8 @@ class DomainLayout:
         block_valid = (q_index[:, :, None] >= 0) & (q_index[:, None, :] >= 0)
         block_rows = np.broadcast_to(q_index[:, :, None], block_valid.shape)[block_valid]
         block_cols = np.broadcast_to(q_index[:, None, :], block_valid.shape)[block_valid]
-        return cls(r=r, r_max=r_max, movable=movable, q_index=q_index, mask=q_index >= 0, movers=movers,
+        return cls(r=r, r_max=r_max, movable=movable, q_index=q_index, mask=q_index >= 0,
+                   modal_rows=q_index[q_index >= 0], movers=movers,
                    lin_index=frame0[:, None] + np.arange(3), ang_index=frame0[:, None] + np.arange(3, 6),
                    total_mass=np.array([dom.total_mass for dom in domains]),
                    inertia0=np.array([dom.inertia0 for dom in domains]).reshape(D, 3, 3),

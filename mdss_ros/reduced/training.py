@@ -93,8 +93,13 @@ def random_patch_forces(rng, model, surface_ids, scale):
 
 
 def generate_training(model, n_poses=60, stride=3, hold=15, force_scale=1.0, source="auto",
-                      full_limit=60000, seed=0, alpha=0.5, progress=None):
-    """Run a training simulation and return a TrainingSet (see the module docstring)."""
+                      full_limit=60000, seed=0, alpha=0.5, progress=None, reduced_simulation=None):
+    """Run a training simulation and return a TrainingSet (see the module docstring).
+
+    model provides the body, its domains and dt. reduced_simulation(alpha) -> (step(f),
+    positions()) is the reduced source: a simulation from rest with exact forces, mass
+    damping alpha and one Newton iteration (ReducedModel.training_simulation); the
+    training never changes the model's settings itself."""
     from ..fem.full_model import FullSpaceModel
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
@@ -108,21 +113,18 @@ def generate_training(model, n_poses=60, stride=3, hold=15, force_scale=1.0, sou
     if source == "full":
         sim = FullSpaceModel(body, model.dt, {"newton_iterations": 1, "tolerance": 1e-6, "line_search": False,
                                               "projection": "auto"}, {"alpha": alpha, "beta": model.beta})
-        positions_now = sim.vertex_positions
+        advance, positions_now = (lambda f: sim.step(f, None)), sim.vertex_positions
     else:
-        sim = model
-        saved = (model.alpha, model.newton_iterations)
-        model.alpha = alpha
-        model.newton_iterations = 1
-        model.reset()
-        positions_now = model.vertex_positions
+        if reduced_simulation is None:
+            raise ValueError("training source 'reduced' needs reduced_simulation (a step function)")
+        advance, positions_now = reduced_simulation(alpha)
     snaps = []
     n_steps = n_poses * stride
     f = np.zeros_like(body.vertices)
     for step in range(n_steps):
         if step % hold == 0:
             f = random_patch_forces(rng, model, surface_ids, force_scale)
-        sim.step(f, None)
+        advance(f)
         if (step + 1) % stride == 0:
             x = positions_now()
             if not np.all(np.isfinite(x)):
@@ -130,9 +132,6 @@ def generate_training(model, n_poses=60, stride=3, hold=15, force_scale=1.0, sou
             snaps.append(x.copy())
         if (step + 1) % max(1, n_steps // 5) == 0:
             say(f"training ({source}): {step + 1}/{n_steps} steps, {len(snaps)} poses")
-    if source == "reduced":
-        model.alpha, model.newton_iterations = saved
-        model.reset()
     positions = np.array(snaps)
     fits = [best_fit_frames(model, x) for x in positions]
     d = len(model.subspace)

@@ -1,0 +1,185 @@
+"""What the stability guard reads from and does to a reduced state (mdss_ros/guard.py,
+docs/method.md §15).
+
+- guard_measure: kinetic energy, elastic energy, gravity potential, a vertex-speed bound
+  and inverted elements, in reduced coordinates (measure.frame_measure); per free domain
+  E_kin = 1/2 M |v|^2 + 1/2 w'^T I(q) w' + w' . (q^T W qd) + 1/2 |qd|^2.
+- scale_relative_motion: the energy projection v <- V + s (v - V), w <- s w, qd <- s qd.
+- untangle: shrink the deformation towards a rigid placement of the rest shape, by the
+  largest s in [0, 1] (bisection) that leaves no inverted element.
+"""
+
+import numpy as np
+
+from .measure import frame_measure, inverted_samples
+
+
+class GuardTerms:
+    """The stability guard's measure, energy projection and untangle on a reduced state. Mixed into
+    reduced_model.ReducedModel, whose build provides the attributes it reads."""
+
+    def kinetic_energy(self):
+        v = self.vertex_velocities()
+        return 0.5 * float((self.vertex_mass * (v * v).sum(1)).sum())
+
+    def guard_measure(self, gravity, check_inversion=True):
+        """What the stability guard reads from the state (guard.Measure), in the reduced
+        coordinates so it costs nothing that grows with the mesh: kinetic energy exactly,
+        per free domain 1/2 M |v|^2 + 1/2 w'^T I(q) w' + w' . (q^T W qd) + 1/2 |qd|^2 (the
+        basis is mass-orthonormal and mass-orthogonal to rigid motion, W the fictitious
+        tensor sum m u_a x u_b); elastic energy from the model's forces (cubature); gravity
+        potential from the mass moments; an upper bound of vertex speeds,
+        |v| + |w| (rho + sigma |q|) + sigma |qd| (rho the largest rest radius, sigma the
+        largest per-vertex basis norm); inverted elements among those the forces sample
+        (cubature samples, coupling and full-space elements)."""
+        from ..state_measure import Measure
+        g = np.asarray(gravity, dtype=np.float64)
+        fr = self.frames
+        with np.errstate(all="ignore"):
+            L = self.layout
+            out = np.empty(4)
+            frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, L.movable, L.total_mass, L.inertia0, L.B1,
+                          L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
+            # x_full / v_full hold every vertex but only full-space rows are state: checking
+            # them on a model without full-space domains was a third of this measure.
+            finite = bool(out[0]) and (not self.F or (np.isfinite(self.x_full).all()
+                                                      and np.isfinite(self.v_full).all()))
+            if not finite:
+                return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
+            kinetic, grav, speed = float(out[1]), float(out[2]), float(out[3])
+            if self.F:
+                m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
+                kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
+                grav -= float((m * (self.x_full @ g)).sum())
+                speed = max(speed, float(np.sqrt((self.v_full * self.v_full).sum(1).max())))
+            try:
+                elastic = float(self.elastic_energy())
+            except (ArithmeticError, ValueError, RuntimeError):
+                elastic = np.nan
+            inverted = self._guard_inverted() if check_inversion else 0
+        finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
+        return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
+
+    def mean_motion(self):
+        """(total mass M, mass-centre velocity V (3,)) for the guard's energy projection;
+        V = 0 for a body held by pins (its momentum is not conserved, scale all motion)."""
+        gm = self._global_motion()
+        m = float(self.layout.total_mass.sum()) + float(self.vertex_mass[self.is_full_vertex].sum())
+        return m, (gm[1].copy() if gm is not None else np.zeros(3))
+
+    def scale_relative_motion(self, s, V):
+        """Energy projection (guard.project_energy): v <- V + s (v - V) on frames and
+        full-space vertices, w <- s w, qd <- s qd. The kinetic energy is 1/2 M |V|^2 +
+        E_rel with E_rel quadratic in (v - V, w, qd) and no cross term (V is the mass-weighted
+        mean, the basis carries no linear momentum), so it becomes 1/2 M |V|^2 + s^2 E_rel;
+        linear momentum is kept, angular momentum about the mass centre scales by s.
+        Positions are untouched (the cached start evaluation stays valid)."""
+        fr = self.frames
+        mv = self.movable
+        fr.v = np.where(mv[:, None], V + s * (fr.v - V), fr.v)
+        fr.w = np.where(mv[:, None], s * fr.w, fr.w)
+        # The Euler force reads (w - w_prev) / dt: scale both so the projection is no jolt.
+        fr.w_prev = np.where(mv[:, None], s * fr.w_prev, fr.w_prev)
+        self.qd = s * self.qd
+        if self.F:
+            self.v_full = np.where(self.is_full_vertex[:, None], V + s * (self.v_full - V), 0.0)
+            self.v_full[self.body.pinned] = 0.0
+
+    def untangle(self, tets, bisections=8):
+        """Last resort of the stability guard for inverted elements a subspace cannot undo
+        (guard.py, `untangle_after`): shrink the deformation towards a rigid placement of
+        the rest shape until no element of tets (m, 4) is inverted. With s in [0, 1]:
+        q <- s q, qd <- s qd, each frame's rotation slerped and its centre (and the
+        full-space vertices) moved from the rigid target (s = 0) to where they are (s = 1);
+        s is the largest found by bisection. The target is the rest shape for a pinned
+        body; for a free one, the rest shape turned by the frames' mass-weighted mean
+        rotation about their mass centre, which it keeps: without full-space domains the
+        gravity potential and (frame velocities kept, modes carry none) the linear
+        momentum do not change.
+        Returns s (1.0: nothing inverted), or None if even s = 0 leaves an inverted element."""
+        from ..state_measure import inverted_tets
+        from ..rotations import exp_so3, quat_from_matrix
+        q0, qd0, fr0, xf0 = self.q, self.qd, self.frames, self.x_full
+        m = self.layout.total_mass
+        cbar = np.array([dom.cbar for dom in self.subspace]).reshape(-1, 3)
+        if len(self.body.pinned) or not self.movable.all():
+            R_t, c_mean, cbar_mean = np.eye(3), np.zeros(3), np.zeros(3)
+        else:
+            u, _, vt = np.linalg.svd(np.einsum("k,kij->ij", m, fr0.R))
+            R_t = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+            c_mean, cbar_mean = m @ fr0.c / m.sum(), m @ cbar / m.sum()
+        c_t = c_mean + (cbar - cbar_mean) @ R_t.T
+        x_t = c_mean + (self.body.vertices - cbar_mean) @ R_t.T
+        rotvec = []
+        for R in fr0.R:                   # loop over domains (d ~ 10)
+            x, y, z, w = quat_from_matrix(R_t.T @ R)
+            half = np.arctan2(np.sqrt(x * x + y * y + z * z), w)
+            n = np.array([x, y, z])
+            rotvec.append(2.0 * half * n / max(np.linalg.norm(n), 1e-300))
+
+        def at(s):
+            fr = fr0.copy()
+            fr.c = np.where(self.movable[:, None], c_t + s * (fr0.c - c_t), fr0.c)
+            for k in np.flatnonzero(self.movable):
+                fr.R[k] = R_t @ exp_so3(s * rotvec[k])
+            xf = np.where(self.is_full_vertex[:, None], x_t + s * (xf0 - x_t), xf0)
+            xf[self.body.pinned] = xf0[self.body.pinned]
+            return s * q0, fr, xf
+
+        def inverted(s):
+            q, fr, xf = at(s)
+            return inverted_tets(self.positions_of(np.arange(len(self.body.vertices)), q, fr, xf), tets)
+
+        if not inverted(1.0):
+            return 1.0
+        if inverted(0.0):
+            return None
+        lo, hi = 0.0, 1.0
+        for _ in range(bisections):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if not inverted(mid) else (lo, mid)
+        self.q, self.frames, self.x_full = at(lo)
+        self.qd = lo * qd0
+        self._start_eval = None
+        return lo
+
+    def _guard_inverted(self):
+        """Inverted elements among those the forces evaluate, without rebuilding vertices
+        where it can: a cubature sample's F = I + unvec(G_s q) is at hand in reduced
+        coordinates, and the coupling elements' vertices are in the start evaluation of the
+        next step (which the guard's energy check has just made)."""
+        from ..state_measure import inverted_tets
+        n = inverted_samples(self.samples.G, self.q, self.samples.valid) if self.samples is not None else 0
+        x_I = None
+        if self.coupling_kind == "element":
+            c = self._start_eval
+            if c is not None and all(a is b for a, b in zip(c[0], (self.q, self.frames, self.x_full, self._full_alive))):
+                x_I = c[1][6]
+        ids, local = self._guard_tets(coupling=x_I is None)
+        if len(ids):
+            n += inverted_tets(self.positions_of(ids), local)
+        if x_I is not None and len(self.c_elem):
+            n += inverted_tets(x_I, self.c_elem)
+        return n
+
+    def _guard_tets(self, coupling=True):
+        """(vertex ids (k,), tets (m, 4) into them) the guard checks for
+        inversion from vertex positions: the elements the forces evaluate that are neither
+        cubature samples (_guard_inverted reads those from q) nor, unless `coupling`,
+        coupling elements."""
+        if self._guard_tet_list.get(coupling) is None:
+            parts = []
+            for dom in self.subspace:
+                fm = dom.forces
+                if getattr(fm, "tets", None) is None or len(fm.tets) == 0:
+                    continue
+                if self.samples is None:
+                    parts.append(dom.vertices[fm.tets])
+            if self.coupling_kind == "element" and coupling:
+                parts.append(self.body.tets[self.c_tets])
+            if self.F:
+                parts.append(self.body.tets[self.ff_elements])
+            tets = np.concatenate(parts).astype(np.int64) if parts else np.zeros((0, 4), np.int64)
+            ids, local = np.unique(tets, return_inverse=True)
+            self._guard_tet_list[coupling] = (ids, local.reshape(tets.shape))
+        return self._guard_tet_list[coupling]

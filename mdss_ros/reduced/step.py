@@ -1,0 +1,300 @@
+"""One step of the reduced model: the unified implicit solve (docs/method.md §9).
+
+    A Q' = b,    b = Mgen Q + dt (J^T f_ext - G_int + F_fict)         (one Newton iteration)
+    q' = q + dt qd',   c' = c + dt v',   R' = exp([dt w']x) R,   x' = x + dt xd'
+
+Q (n_gen,) stacks per subspace domain [qd_i; v_i; w_i] (a pinned domain: qd_i only), then
+the free full-space DOFs. More Newton iterations solve r(Q) = Mgen (Q - Q_n) + dt (Dgen Q +
+G(s(Q)) - F_n) = 0 with an Armijo line search on the incremental potential; contact
+corrects each Newton step (contact_rows.py). A step's dt, iteration count and fictitious
+treatment come from StepOptions for that step only.
+"""
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import SceneError
+from ..fem.backward_euler import contact_forces, contact_stats
+from ..loads import sparse_loads
+from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
+from ..step_options import StepOptions
+from .unified_system import StepSystem
+
+
+@dataclass(frozen=True)
+class StepTerms:
+    """What one step integrates with, resolved once from the model's settings and the
+    step's StepOptions and passed down, so no step ever changes the model's settings:
+    dt (s), newton_iterations, implicit (fictitious forces), alpha (mass damping 1/s)."""
+
+    dt: float
+    newton_iterations: int
+    implicit: bool
+    alpha: float
+
+
+class Step:
+    """The reduced step, its prediction of the state from Q, and the start-state evaluation. Mixed into
+    reduced_model.ReducedModel, whose build provides the attributes it reads."""
+
+    def step(self, f_ext, gravity=None, contact=None, options=None):
+        """Advance by dt under per-vertex loads f_ext (n_verts, 3) and gravity (3,); contact
+        as in BackwardEuler.step; options: a StepOptions for this step only (dt, Newton
+        iterations, implicit fictitious forces). The model's own settings are not touched:
+        the step reads them through StepTerms."""
+        return self._step(f_ext, gravity, contact, self.step_terms(options))
+
+    def step_terms(self, options=None, alpha=None, newton_iterations=None):
+        """The StepTerms of a step: the model's settings, changed by options (StepOptions:
+        dt, at least options.newton_iterations, fictitious). alpha, newton_iterations:
+        exact values for a training run (training.py), which steps without damping ladders."""
+        o = options or StepOptions()
+        iterations = max(self.newton_iterations, int(o.newton_iterations or 0))
+        return StepTerms(dt=float(o.dt or self.dt),
+                         newton_iterations=int(newton_iterations or iterations),
+                         implicit=(o.fictitious or self.fictitious) == "implicit",
+                         alpha=self.alpha if alpha is None else float(alpha))
+
+    def _step(self, f_ext, gravity, contact, terms):
+        t0 = time.perf_counter()
+        dt = terms.dt
+        # Body-frame inertia (D, 3, 3) at the step start, for the mass blocks and the prediction.
+        inertia = self.layout.inertia(self.q) if len(self.layout.movers) else None
+        gm = self._global_motion(inertia)
+        if gm is not None:
+            C, V, W, L = gm
+            # Torque of the loads about the mass centre; uniform gravity has none.
+            loaded, f_loaded = sparse_loads(f_ext)
+            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0)
+            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * terms.alpha))
+        self._dW = 0.0
+        self._indefinite = False
+        # The applied loads as generalised forces at the step start (no gravity: it is a
+        # potential); their work over the step is dt F_app . Q' (reported for the guard).
+        F_app = self._external(f_ext, None, self.frames, self.q)
+        base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm, inertia)
+        Qn = self.get_Q()
+        if gm is not None:
+            Qn = self._coriolis_rotate(gm, Qn - self._rigid_Q(gm), dt)
+        implicit = terms.implicit
+        if implicit:
+            coriolis, centrifugal = self._fictitious_matrices(self.frames)
+            Qn = self._modal_coriolis_rotate(coriolis, Qn, dt)
+        (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
+        # Dgen = alpha Mgen + beta K (step start); with implicit fictitious forces the
+        # centrifugal force K_cf q at the end of the step, K_cf q_n (explicit, in Fn) + dt
+        # K_cf qd', is a velocity term, hence in Dgen (it enters A as -dt^2 K_cf).
+        mass = self._subspace_mass(self.frames, predicted_dt=dt, inertia=inertia)
+        system = StepSystem(self, mass, dt, terms.alpha, self.beta, (K_ss, K_sI, K_ff),
+                            centrifugal if implicit else None)
+        Fn = self._external(f_ext, gravity, self.frames, self.q) + \
+            self._explicit_terms(self.frames, self.q, self.qd, dt, coriolis=not implicit)
+        if gm is not None:
+            Fn = Fn + self._global_fictitious(gm)
+        # Momentum at the step start: Mgen(t) (Qn + Q_W) - Mgen(t + dt) Q_W, where Q_W carries
+        # the global W on the angular rows (the angular rows hold w - W when gm is used).
+        mass0 = self._subspace_mass(self.frames, inertia=inertia)
+        S = self.S
+        p0 = system.mass_matvec(Qn)                   # the full-space rows: M_ff Qn
+        if gm is not None:
+            Q_W = self._rigid_Q((np.zeros(3), np.zeros(3), gm[2]), angular_only=True)[:S]
+            p0[:S] = mass0.matvec(Qn[:S] + Q_W) - mass.matvec(Q_W)
+        else:
+            p0[:S] = mass0.matvec(Qn[:S])
+
+        def residual(Q, G_k):
+            return system.mass_matvec(Q) - p0 + dt * (system.damping_matvec(Q) + G_k - Fn)
+
+        t_c = time.perf_counter()
+        contact_rows = self._contact_rows(contact, gm, dt) if contact else None
+        contact_s = time.perf_counter() - t_c
+        lam = None
+        if contact_rows is not None and self.scheme == "two_step":
+            raise SceneError("contact is available with the one-step scheme only")
+        r0 = r_last = 0.0
+        if self.scheme == "two_step":
+            Q = self._two_step(mass.dense(), K_ss, (system.damping_dense(),), p0, G, Fn, dt)
+            iterations = 1
+        else:
+            Q = np.zeros_like(Qn)
+            iterations, cuts = 0, 0
+            r = dt * (G - Fn) - p0                    # the residual at Q = 0
+            r0 = r_last = float(np.linalg.norm(r))
+            for it in range(terms.newton_iterations):
+                A = system.matrix(K_ss, K_sI, K_ff)
+                dQ = self._solve(*A, -r)
+                if contact_rows is not None:
+                    t_c = time.perf_counter()
+                    dQ, lam = self._contact_solve(contact_rows, Q, dQ)
+                    contact_s += time.perf_counter() - t_c
+                    if it == 0:
+                        # A body at rest pushed only by a collider has r0 = 0: measure the
+                        # tolerance against the contact forces' size instead.
+                        r0 = max(r0, float(np.linalg.norm(self._contact_force(contact_rows, lam))))
+                iterations += 1
+                step_len = 1.0
+                if terms.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
+                    phi0 = system.potential(Q, p0, Fn, energy)
+                    slope = float(r @ dQ)
+                    while step_len > 1e-4:
+                        trial = Q + step_len * dQ
+                        e_t = self._energy_at(trial, base, dt)
+                        if system.potential(trial, p0, Fn, e_t) <= phi0 + 1e-4 * step_len * slope:
+                            break
+                        step_len *= 0.5
+                        cuts += 1
+                Q = Q + step_len * dQ
+                if it + 1 == terms.newton_iterations:
+                    break
+                q, _, frames, x_full, _ = self._predict(Q, base, dt)
+                G, K_ss, K_sI, K_ff, energy, _, _ = self._evaluate(q, frames, x_full)
+                r = residual(Q, G)
+                # With contact the converged residual is the contact force C^T lam, not zero.
+                r_c = r - self._contact_force(contact_rows, lam) if contact_rows is not None else r
+                r_last = float(np.linalg.norm(r_c))
+                if r_last <= self.tolerance * max(r0, 1e-300):
+                    break
+        if gm is not None and contact_rows is not None and self._contact_rows_seen is contact_rows:
+            # The balance of angular momentum the prediction restores (L' = (L + dt tau) /
+            # (1 + dt alpha)) must hold the contact forces' torque too: without it the
+            # rebalance turned a caterpillar lifting its head against the floor by up to
+            # 0.3 rad/s a step and created energy the guard rolled back.
+            tau_c = self._torque_about(self._contact_force(contact_rows, self._contact_lam) / dt, gm[0])
+            gm = gm[:3] + (gm[3] + dt * tau_c / (1.0 + dt * terms.alpha),)
+            base = base[:3] + (gm,) + base[4:]
+        q, qd, frames, x_full, v_full = self._predict(Q, base, dt)
+        self.q, self.qd, self.frames = q, qd, frames
+        if self.F:             # before the contact outputs, which read full-space positions
+            self.x_full, self.v_full = x_full, v_full
+        self.contact = None
+        contact_work = 0.0
+        if contact_rows is not None:
+            verts, _, _, normals, which, friction = contact_rows
+            lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
+            lam_n = lam if lam.ndim == 1 else lam[:, 0]
+            pts = self.positions_of(verts)
+            depth = np.zeros(len(verts))
+            active = lam_n > 0
+            for c_idx, col in enumerate(contact["colliders"]):
+                sel = np.flatnonzero(active & (which == c_idx))
+                if sel.size:
+                    depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
+            w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
+            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
+                                          pts, depth, w, dt)
+            # Work of the contact forces over the step in the step's own terms (the guard's
+            # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
+            # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
+            if friction is None:
+                contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
+            else:
+                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[4]))
+        self.last = {"elastic": energy}
+        total = 1e3 * (time.perf_counter() - t0)
+        residual_ratio = r_last / r0 if r0 > 0 else 0.0
+        external_work = dt * float(F_app @ self.get_Q())
+        self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
+                      "contact_work": contact_work,
+                      "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
+                      "domain_ms": timing["domain_ms"],
+                      "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
+                      "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
+                      "angular_momentum_correction": self._dW,
+                      "indefinite_system": self._indefinite,
+                      "domains": len(self.subspace) + len(self.full)}
+        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
+            self.stats.update(contact_stats(self._contact_info))
+        self.timing = {}
+        return self.stats
+
+    def _predict(self, Q, base, dt):
+        """State reached from the step-start state `base` with velocities Q over dt.
+
+        Without a global motion Q holds inertial velocities and frame centres move on
+        straight lines. With one (free bodies, see _global_motion) Q holds velocities
+        relative to the body's mean rigid motion (C, V, W): every frame centre and
+        full-space vertex is carried rigidly by exp(dt W) about C, plus its relative
+        motion, so a rigid spin is integrated exactly instead of spiralling in under
+        backward Euler.
+        """
+        q0, frames0, x0, gm, inertia0 = base
+        L = self.layout
+        qd = L.gather(Q)
+        q = q0 + dt * qd
+        v = frames0.v.copy()
+        w = frames0.w.copy()
+        v[L.movers] = Q[L.lin_index]
+        w[L.movers] = Q[L.ang_index]
+        frames = frames0.copy()
+        if self.F:
+            v_full = self._full_expand(Q[self.S:])
+        else:
+            v_full = self.v_full
+        if gm is None:
+            frames.advance(v, w, dt, self.movable)
+            x_full = x0 + dt * v_full if self.F else x0
+        else:
+            C, V, W = gm[:3]
+            Rg = exp_so3(dt * W)
+            C1 = C + dt * V
+            mv = self.movable
+            rho = Rg @ (frames0.c[mv] - C + dt * v[mv]).T
+            frames.c[mv] = C1 + rho.T
+            frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
+            frames.w[mv] = W + w[mv] @ Rg.T
+            frames.R[mv] = orthonormalise_batch(Rg @ exp_so3_batch(dt * w[mv]) @ frames0.R[mv])
+            if self.F:
+                rho_f = (x0 - C + dt * v_full) @ Rg.T
+                x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
+                v_full = np.where(self.is_full_vertex[:, None], V + cross(W, rho_f) + v_full @ Rg.T, 0.0)
+            else:
+                x_full = x0
+        # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
+        # inertia at the predicted rotation; re-express that momentum with the inertia the
+        # domain really has after the step, so torque-free domains keep h exactly.
+        mv = L.movers
+        inertia = L.inertia(q) if len(mv) else None       # a pinned body's frames do not turn
+        if len(mv):
+            Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
+            h = np.einsum("dij,dj->di", Rp @ inertia0[mv] @ Rp.transpose(0, 2, 1),
+                          frames.w[mv] if gm is None else gm[2] + w[mv])
+            R1 = frames.R[mv]
+            frames.w[mv] = np.linalg.solve(R1 @ inertia[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
+        if gm is not None:
+            # Carrying the state by exp(dt W) also turns its angular momentum by that
+            # rotation; where L is not parallel to W (products of inertia) this is a
+            # spurious precession, first order in dt. Restore the balance of angular
+            # momentum, L' = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW
+            # about the mass centre (linear momentum unchanged).
+            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full, inertia)
+            dW = np.linalg.solve(I1, gm[3] - L1)
+            self._dW = float(np.linalg.norm(dW))
+            frames.v[mv] += cross(dW, frames.c[mv] - C1)
+            frames.w[mv] += dW
+            if self.F:
+                v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
+        frames.w_prev = frames0.w.copy()
+        return q, qd, frames, x_full, v_full
+
+    def _energy_at(self, Q, base, dt):
+        q, _, frames, x_full, _ = self._predict(Q, base, dt)
+        return self._evaluate(q, frames, x_full, want_hessian=False)[4]
+
+    def elastic_energy(self):
+        # The evaluation at the current state is the one the next step starts from: the
+        # stability guard's energy check after a step costs the next step nothing.
+        return self._start_evaluation()[0][4]
+
+    def _start_evaluation(self, take=False):
+        """((G, K_ss, K_sI, K_ff, energy, J, x_I), timing) of _evaluate at the current state,
+        computed once per state: the cache holds the state objects it was computed from
+        (every step and set_state replace them) and is dropped when a step takes it."""
+        # Cutting replaces _full_alive: the forces changed, so it is part of the key.
+        state = (self.q, self.frames, self.x_full, self._full_alive)
+        c = self._start_eval
+        if c is None or not all(a is b for a, b in zip(c[0], state)):
+            result = self._evaluate(self.q, self.frames, self.x_full)
+            c = (state, result, dict(self.timing))
+        self._start_eval = None if take else c
+        return c[1], c[2]

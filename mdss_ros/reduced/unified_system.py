@@ -1,0 +1,241 @@
+"""The unified implicit matrix and its solve (docs/method.md §9.1-9.3, §10, §11).
+
+    A = Mgen + dt Dgen + dt^2 Kgen,    Dgen = alpha Mgen + beta Kgen
+
+in three parts: the dense subspace block A_ss (S, S), the subspace-to-full-space block
+A_sI (S, n_cols) on the full-space columns coupled to subspace domains, and the sparse
+full-space block A_ff (the data of ff_pattern). Mgen = blockdiag(I_r, m I3, I(world))
+on the subspace rows, lumped masses on the full-space rows. Without full-space domains A
+is solved by the block Cholesky (block_cholesky.py), by LU when it is indefinite or
+unsymmetric; with them by a sparse solver over the joint system.
+
+Mgen is kept as its structure (SubspaceMass): a step's mass products and its share of A
+cost O(S), and A_ss is formed from K in one scaled pass (StepSystem.matrix). Formed as
+dense (S, S) sums, they were about ten passes over an (S, S) array a step.
+"""
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from ..errors import SceneError
+from ..linear_solver import NotPositiveDefinite
+
+
+@dataclass(frozen=True)
+class SubspaceMass:
+    """Mgen on the S subspace rows as its structure: 1 on the modal rows (n_modal,), m_k I3
+    on the movers' linear rows lin_index (M, 3), the world inertia I_k (M, 3, 3) on their
+    angular rows ang_index (M, 3); mass (M,). Every subspace row is one of these."""
+
+    S: int
+    modal: np.ndarray
+    lin_index: np.ndarray
+    mass: np.ndarray
+    ang_index: np.ndarray
+    inertia: np.ndarray
+
+    def matvec(self, x):
+        """Mgen x on the subspace rows: x (S,) -> (S,)."""
+        out = np.empty_like(x)
+        out[self.modal] = x[self.modal]
+        out[self.lin_index] = self.mass[:, None] * x[self.lin_index]
+        out[self.ang_index] = np.einsum("mij,mj->mi", self.inertia, x[self.ang_index])
+        return out
+
+    def add_to(self, A, scale):
+        """A (S, S) += scale Mgen, in place; returns A."""
+        A[self.modal, self.modal] += scale
+        A[self.lin_index, self.lin_index] += scale * self.mass[:, None]
+        A[self.ang_index[:, :, None], self.ang_index[:, None, :]] += scale * self.inertia
+        return A
+
+    def dense(self):
+        """Mgen's subspace part as a dense (S, S) array."""
+        return self.add_to(np.zeros((self.S, self.S)), 1.0)
+
+
+class StepSystem:
+    """The unified system of one step (docs/method.md §9.2, §9.3, §9.5):
+
+        Mgen Q,   Dgen Q = alpha Mgen Q + beta K0 Q - dt K_cf Q,
+        A(K) = (1 + dt alpha) Mgen + dt beta K0 + dt^2 K - dt^2 K_cf
+
+    mass: SubspaceMass at the predicted rotations; M_ff (full-space lumped masses, ff_pattern
+    data) or None; K0 = (K_ss, K_sI, K_ff) the tangent at the step start (Dgen keeps it for
+    the whole step); centrifugal (D, r_max, r_max) the implicit centrifugal stiffness on the
+    modal blocks, or None; matvec: the model's product with (A_ss, A_sI, A_ff) parts."""
+
+    def __init__(self, model, mass, dt, alpha, beta, K0, centrifugal=None):
+        self.model, self.mass, self.dt, self.alpha, self.beta = model, mass, dt, alpha, beta
+        self.K0, self.centrifugal = K0, centrifugal
+        self.F = model.F
+
+    def mass_matvec(self, Q):
+        """Mgen Q (n_gen,)."""
+        m = self.model
+        out = np.empty_like(Q)
+        out[:m.S] = self.mass.matvec(Q[:m.S])
+        if self.F:
+            out[m.S:] = m.ff_pattern.matrix(m.M_ff) @ Q[m.S:]
+        return out
+
+    def damping_matvec(self, Q):
+        """Dgen Q (n_gen,)."""
+        out = self.alpha * self.mass_matvec(Q)
+        if self.beta:
+            K_ss, K_sI, K_ff = self.K0
+            out += self.beta * self.model._matvec(K_ss, K_sI, K_ff, Q)
+        if self.centrifugal is not None:
+            L = self.model.layout
+            out[L.q_index[L.mask]] -= self.dt * np.einsum("dab,db->da", self.centrifugal, L.gather(Q))[L.mask]
+        return out
+
+    def matrix(self, K_ss, K_sI, K_ff):
+        """A = (A_ss dense (S, S), A_sI dense or None, A_ff sparse data or None) at tangent K."""
+        dt, K0 = self.dt, self.K0
+        if K_ss is K0[0]:
+            A_ss = (dt * dt + dt * self.beta) * K_ss            # the first iteration: one pass
+        else:
+            A_ss = dt * dt * K_ss
+            if self.beta:
+                A_ss += (dt * self.beta) * K0[0]
+        self.mass.add_to(A_ss, 1.0 + dt * self.alpha)
+        if self.centrifugal is not None:
+            L = self.model.layout
+            A_ss[L.block_rows, L.block_cols] -= dt * dt * self.centrifugal[L.block_valid]
+        if not self.F:
+            return A_ss, None, None
+        A_sI = dt * self.beta * K0[1] + dt * dt * K_sI
+        A_ff = (1.0 + dt * self.alpha) * self.model.M_ff + dt * self.beta * K0[2] + dt * dt * K_ff
+        return A_ss, A_sI, A_ff
+
+    def damping_dense(self):
+        """Dgen's subspace part (S, S) dense (the two-step foil)."""
+        D = self.alpha * self.mass.dense() + self.beta * self.K0[0]
+        if self.centrifugal is not None:
+            L = self.model.layout
+            D[L.block_rows, L.block_cols] -= self.dt * self.centrifugal[L.block_valid]
+        return D
+
+    def potential(self, Q, p0, Fn, elastic):
+        """Incremental potential whose gradient is the residual: 1/2 Q.Mgen Q - p0.Q
+        + dt/2 Q.Dgen Q + E(s(Q)) - dt Fn.Q."""
+        dt = self.dt
+        return (0.5 * Q @ self.mass_matvec(Q) - p0 @ Q + 0.5 * dt * Q @ self.damping_matvec(Q)
+                + elastic - dt * Fn @ Q)
+
+
+class UnifiedSystem:
+    """Generalised mass, the unified matrix, its solve and the two-step foil. Mixed into
+    reduced_model.ReducedModel, whose build provides the attributes it reads."""
+
+    def _subspace_mass(self, frames, predicted_dt=None, inertia=None):
+        """Mgen's subspace part as a SubspaceMass. predicted_dt puts each domain's inertia
+        at the rotation exp(dt w) R it will have after the step: the angular rows are in
+        momentum form I(t + dt) w' = I(t) w + dt tau, which conserves angular momentum
+        where an explicit gyroscopic term -w x I w gains it. inertia: the body-frame
+        inertia (D, 3, 3) at the state's q when the caller has it."""
+        L = self.layout
+        mv = L.movers
+        if len(mv):
+            R = (L.predicted_rotations(frames.R[mv], frames.w[mv], predicted_dt) if predicted_dt
+                 else frames.R[mv])
+            I_body = (L.inertia(self.q) if inertia is None else inertia)[mv]
+            I_world = R @ I_body @ R.transpose(0, 2, 1)
+        else:
+            I_world = np.zeros((0, 3, 3))
+        return SubspaceMass(S=self.S, modal=L.modal_rows, lin_index=L.lin_index,
+                            mass=L.total_mass[mv], ang_index=L.ang_index, inertia=I_world)
+
+    def _mass_blocks(self, frames, predicted_dt=None):
+        """Mgen's subspace part (S, S) dense (see _subspace_mass)."""
+        return self._subspace_mass(frames, predicted_dt).dense()
+
+    def _solve(self, A_ss, A_sI, A_ff, rhs):
+        t0 = time.perf_counter()
+        if self.F == 0 and self.unsymmetric:
+            lu = sla.lu_factor(A_ss, check_finite=False)
+            self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
+            t1 = time.perf_counter()
+            x = sla.lu_solve(lu, rhs, check_finite=False)
+        elif self.F == 0:
+            try:
+                self.block_solver.factor(A_ss)
+                self._resolve = self.block_solver.solve
+            except NotPositiveDefinite:
+                # Large compression (or a centrifugal stiffness) can make A indefinite; LU
+                # still gives the Newton step of the linearised system. Its result is checked
+                # by the Simulator's stability guard (mdss_ros/guard.py), which rolls the step
+                # back and retries with more Newton iterations and smaller dt (A = M + dt^2 K
+                # is positive definite for small enough dt) if it diverges, and counts the
+                # accepted indefinite steps (stats "guard_indefinite_steps").
+                lu = sla.lu_factor(A_ss, check_finite=False)
+                self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
+                self._indefinite = True
+            t1 = time.perf_counter()
+            x = self._resolve(rhs)
+        else:
+            cols = self.iface_full_cols
+            B = sp.csr_matrix((np.ravel(A_sI), (np.repeat(np.arange(self.S), len(cols)), np.tile(cols, self.S))),
+                              shape=(self.S, self.F))
+            A = sp.bmat([[sp.csr_matrix(A_ss), B], [B.T, self.ff_pattern.matrix(A_ff)]], format="csr")
+            try:
+                self.sparse_solver.factor(A)
+                self._resolve = self.sparse_solver.solve
+            except NotPositiveDefinite:
+                lu = spla.splu(A.tocsc())
+                self._resolve = lu.solve
+                self._indefinite = True
+            t1 = time.perf_counter()
+            x = self._resolve(rhs)
+        t2 = time.perf_counter()
+        self.timing["factor_ms"] = self.timing.get("factor_ms", 0.0) + 1e3 * (t1 - t0)
+        self.timing["solve_ms"] = self.timing.get("solve_ms", 0.0) + 1e3 * (t2 - t1)
+        return x
+
+    def _matvec(self, A_ss, A_sI, A_ff, Q):
+        out = np.zeros_like(Q)
+        out[:self.S] = A_ss @ Q[:self.S]
+        if self.F:
+            cols = self.iface_full_cols
+            out[:self.S] += A_sI @ Q[self.S:][cols]
+            out[self.S:] = self.ff_pattern.matrix(A_ff) @ Q[self.S:]
+            np.add.at(out[self.S:], cols, A_sI.T @ Q[:self.S]) if len(cols) else None
+        return out
+
+    def system_matrix(self):
+        """The unified matrix A (n_gen, n_gen) at the current state, dense (diagnostics, tests)."""
+        G, K_ss, K_sI, K_ff, _, _, _ = self._evaluate(self.q, self.frames, self.x_full)
+        system = StepSystem(self, self._subspace_mass(self.frames, predicted_dt=self.dt), self.dt, self.alpha,
+                            self.beta, (K_ss, K_sI, K_ff))
+        A_ss, A_sI, A_ff = system.matrix(K_ss, K_sI, K_ff)
+        if not self.F:
+            return A_ss
+        A = np.zeros((self.n_gen, self.n_gen))
+        A[:self.S, :self.S] = A_ss
+        A[:self.S, self.S + self.iface_full_cols] = A_sI
+        A[self.S + self.iface_full_cols, :self.S] = A_sI.T
+        A[self.S:, self.S:] = self.ff_pattern.matrix(A_ff).toarray()
+        return A
+
+    def _two_step(self, M_ss, K_ss, D, p0, G, Fn, dt):
+        """The paper's foil: rigid DOFs with deformation frozen, then deformation with
+        frames frozen: block Gauss-Seidel on the one-step system."""
+        if self.F:
+            raise SceneError("the two-step scheme is available for subspace domains only")
+        A = M_ss + dt * D[0] + dt * dt * K_ss
+        b = p0 + dt * (Fn - G)
+        Qn = np.linalg.solve(M_ss, p0)         # the step-start velocities the paper freezes
+        rigid = np.zeros(self.S, dtype=bool)
+        rigid[self.layout.lin_index] = True
+        rigid[self.layout.ang_index] = True
+        Q = Qn.copy()
+        rr, dd = np.flatnonzero(rigid), np.flatnonzero(~rigid)
+        if rr.size:
+            Q[rr] = sla.solve(A[np.ix_(rr, rr)], b[rr] - A[np.ix_(rr, dd)] @ Qn[dd], assume_a="pos")
+        Q[dd] = sla.solve(A[np.ix_(dd, dd)], b[dd] - A[np.ix_(dd, rr)] @ Q[rr], assume_a="pos")
+        return Q
