@@ -310,7 +310,145 @@ def _jacobian(W, mu, rho, lam, parts):
     return J.reshape(3 * m, 3 * m)
 
 
+@njit(cache=True)
+def _residual_kernel(W, g, mu, rho, lam, F, stick):
+    """Compiled _residual: fills F (m, 3) and stick (m,) bool; returns |F|^2."""
+    m = mu.shape[0]
+    w = W @ lam.ravel() + g
+    merit = 0.0
+    for k in range(m):
+        wn, w1, w2 = w[3 * k], w[3 * k + 1], w[3 * k + 2]
+        ln = lam[k, 0]
+        F[k, 0] = rho[k] * wn if ln - rho[k] * wn > 0.0 else ln
+        z1 = lam[k, 1] - rho[k] * w1
+        z2 = lam[k, 2] - rho[k] * w2
+        nz = np.sqrt(z1 * z1 + z2 * z2)
+        radius = mu[k] * max(ln, 0.0)
+        stick[k] = nz <= radius
+        if stick[k]:
+            F[k, 1], F[k, 2] = rho[k] * w1, rho[k] * w2
+        else:
+            h1, h2 = (z1 / nz, z2 / nz) if nz > 0.0 else (0.0, 0.0)
+            F[k, 1], F[k, 2] = lam[k, 1] - radius * h1, lam[k, 2] - radius * h2
+        merit += F[k, 0] * F[k, 0] + F[k, 1] * F[k, 1] + F[k, 2] * F[k, 2]
+    return merit
+
+
+@njit(cache=True)
+def _jacobian_kernel(W, g, mu, rho, lam, J):
+    """Compiled _jacobian: fills J (3m, 3m) at lam."""
+    m = mu.shape[0]
+    n = 3 * m
+    w = W @ lam.ravel() + g
+    J[:, :] = 0.0
+    for k in range(m):
+        a = 3 * k
+        if lam[k, 0] - rho[k] * w[a] > 0.0:                 # touching: rho W_n
+            for j in range(n):
+                J[a, j] = rho[k] * W[a, j]
+        else:
+            J[a, a] = 1.0
+        z1 = lam[k, 1] - rho[k] * w[a + 1]
+        z2 = lam[k, 2] - rho[k] * w[a + 2]
+        nz = np.sqrt(z1 * z1 + z2 * z2)
+        radius = mu[k] * max(lam[k, 0], 0.0)
+        if nz <= radius:                                    # stick: rho W_t
+            for j in range(n):
+                J[a + 1, j] = rho[k] * W[a + 1, j]
+                J[a + 2, j] = rho[k] * W[a + 2, j]
+            continue
+        h1, h2 = (z1 / nz, z2 / nz) if nz > 0.0 else (0.0, 0.0)
+        c = radius / nz if nz > 0.0 else 0.0
+        p11, p12, p22 = c * (1.0 - h1 * h1), -c * h1 * h2, c * (1.0 - h2 * h2)
+        for j in range(n):                                  # P rho W_t
+            r1, r2 = rho[k] * W[a + 1, j], rho[k] * W[a + 2, j]
+            J[a + 1, j] = p11 * r1 + p12 * r2
+            J[a + 2, j] = p12 * r1 + p22 * r2
+        J[a + 1, a + 1] += 1.0 - p11                        # + (I - P) on its own tangent columns
+        J[a + 1, a + 2] += -p12
+        J[a + 2, a + 1] += -p12
+        J[a + 2, a + 2] += 1.0 - p22
+        if lam[k, 0] > 0.0:
+            J[a + 1, a] -= mu[k] * h1
+            J[a + 2, a] -= mu[k] * h2
+
+
+@njit(cache=True)
+def _newton_kernel(W, g, mu, rho, lam0, tol_abs, max_iterations):
+    """_newton's loop compiled (same steps, same line search, same stall rule). Returns
+    (best lam (m, 3), iterations, line-search cuts, best |F|^2, ok): ok is False when a
+    Newton system was singular (the caller then runs the numpy loop, which falls back to
+    least squares)."""
+    m = mu.shape[0]
+    lam = lam0.copy()
+    F = np.empty((m, 3))
+    F_t = np.empty((m, 3))
+    stick = np.empty(m, dtype=np.bool_)
+    stick_t = np.empty(m, dtype=np.bool_)
+    J = np.empty((3 * m, 3 * m))
+    merit = _residual_kernel(W, g, mu, rho, lam, F, stick)
+    best_merit, best_lam = merit, lam.copy()
+    it, cuts, stalled = 0, 0, 0
+    while it < max_iterations and np.sqrt(merit) > tol_abs and stalled < 2:
+        it += 1
+        _jacobian_kernel(W, g, mu, rho, lam, J)
+        try:
+            d = np.linalg.solve(J, -F.ravel()).reshape(m, 3)
+        except Exception:
+            return best_lam, it, cuts, best_merit, False
+        step = 1.0
+        while True:
+            merit_t = _residual_kernel(W, g, mu, rho, lam + step * d, F_t, stick_t)
+            if merit_t <= (1.0 - 1e-4 * step) * merit:
+                break
+            if step < 1e-6:
+                step = 1.0
+                merit_t = _residual_kernel(W, g, mu, rho, lam + d, F_t, stick_t)
+                break
+            step *= 0.5
+            cuts += 1
+        # The contact set: F's normal row is rho w_n exactly where touching.
+        same_sets = np.array_equal(stick_t, stick)
+        if same_sets:
+            w_old = W @ lam.ravel() + g
+            lam_new = lam + step * d
+            w_new = W @ lam_new.ravel() + g
+            for k in range(m):
+                if (lam[k, 0] - rho[k] * w_old[3 * k] > 0.0) != (lam_new[k, 0] - rho[k] * w_new[3 * k] > 0.0):
+                    same_sets = False
+                    break
+        lam = lam + step * d
+        F[:, :] = F_t
+        stick[:] = stick_t
+        merit = merit_t
+        stalled = stalled + 1 if (same_sets and merit > 0.25 * best_merit) else 0
+        if merit < best_merit:
+            best_merit, best_lam = merit, lam.copy()
+    return best_lam, it, cuts, best_merit, True
+
+
 def _newton(W, g, mu, lam0, tol, max_iterations):
+    """Alart-Curnier semismooth Newton, compiled (_newton_kernel; its numpy form,
+    _newton_numpy, is the tested reference and the fallback for a singular system)."""
+    m = len(mu)
+    rho = _rho(W, m)
+    lam0 = np.array(lam0, dtype=np.float64).reshape(m, 3)
+    scale = _force_scale(g, rho, lam0)
+    W = np.ascontiguousarray(W, dtype=np.float64)
+    lam, it, cuts, merit, ok = _newton_kernel(W, np.ascontiguousarray(g, dtype=np.float64),
+                                              np.ascontiguousarray(mu, dtype=np.float64), rho, lam0,
+                                              tol * scale, max_iterations)
+    if not ok:
+        return _newton_numpy(W, g, mu, lam0, tol, max_iterations)
+    _, parts = _residual(W, g, mu, rho, lam)
+    stick = parts[2]
+    in_contact = lam[:, 0] > 0.0
+    return lam, {"iterations": it, "line_search_cuts": cuts, "residual": float(np.sqrt(merit)) / scale,
+                 "stick": in_contact & stick, "slip": in_contact & ~stick,
+                 "unconverged": bool(np.sqrt(merit) > UNCONVERGED * scale)}
+
+
+def _newton_numpy(W, g, mu, lam0, tol, max_iterations):
     """Alart-Curnier semismooth Newton from lam0, with a backtracking line search on
     |F|^2 (Armijo). Where the search finds no decrease the full step is taken anyway
     (non-monotone: a kink of F can make every short step look worse), and the best
