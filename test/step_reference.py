@@ -8,8 +8,8 @@ reproduce it to a relative 1e-10 of the displacement. A change to what the step 
 (the method) rewrites the file in the same commit and says why.
 
 Rewritten since: the "contact" case (a free body on a floor), when the free body's angular
-momentum rebalance started counting the contact forces' torque (it moved the case by 0.24
-of its displacement; test_reduced_model's lifted-bar test shows why the old answer was wrong).
+momentum rebalance stopped acting in steps with contact (it had undone the contact forces'
+torque; test_reduced_model's lifted-bar test shows why the old answer was wrong).
 
 Each case covers a path through the step: pinned and free multi-domain bodies, a spin
 with explicit and with implicit fictitious forces, a full-space domain, contact (a body

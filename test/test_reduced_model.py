@@ -294,10 +294,10 @@ def test_a_free_body_lifted_off_a_floor_creates_no_energy():
     """A free 3-domain bar dropped on a floor, then lifted at one end by a wrench (60 % of
     its weight), guard off: every step's energy change stays within the work of the load
     and the contacts (backward Euler only dissipates). The free body's angular momentum
-    rebalance must count the floor's torque: without it the rebalance turned the bar by up
-    to 0.3 rad/s a step, the energy created reached 0.099 of the step's energy scale (the
-    guard's bound is 0.1) and the tip rose 0.56 m instead of 0.32 m. Measured now: -1.0e-3
-    (dissipation)."""
+    rebalance must not undo the floor's torque: when it restored L + dt tau_loads in
+    contact steps it turned the bar by up to 0.3 rad/s a step, the energy created reached
+    0.099 of the step's energy scale (the guard's bound is 0.1) and the tip rose 0.56 m
+    instead of 0.33 m. Measured now: at most 2.4e-4 of the scale."""
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).parent))

@@ -55,18 +55,6 @@ class FictitiousTerms:
              + cross(rho_f, m_f[:, None] * (v_f - V)).sum(0))
         return C, V, L, I
 
-    def _torque_about(self, F, C):
-        """Torque (3,) about the point C (3,) of a generalised force F (n_gen,) applied at
-        the step start: each movable domain's torque row (about its frame centre c) plus
-        (c - C) x its force row, and (x - C) x f of each full-space vertex."""
-        L = self.layout
-        c = self.frames.c[L.movers]
-        tau = (F[L.ang_index] + cross(c - C, F[L.lin_index])).sum(0)
-        if self.F:
-            f = self._full_expand(F[self.S:])
-            tau = tau + cross(self.x_full - C, f).sum(0)
-        return tau
-
     def _rigid_Q(self, gm, angular_only=False):
         """Generalised velocities of the rigid motion (V, W) about C (n_gen,);
         angular_only: W on the domains' angular rows, zero elsewhere."""

@@ -155,13 +155,14 @@ class Step:
                 r_last = float(np.linalg.norm(r_c))
                 if r_last <= self.tolerance * max(r0, 1e-300):
                     break
-        if gm is not None and contact_rows is not None and self._contact_rows_seen is contact_rows:
-            # The balance of angular momentum the prediction restores (L' = (L + dt tau) /
-            # (1 + dt alpha)) must hold the contact forces' torque too: without it the
-            # rebalance turned a caterpillar lifting its head against the floor by up to
-            # 0.3 rad/s a step and created energy the guard rolled back.
-            tau_c = self._torque_about(self._contact_force(contact_rows, self._contact_lam) / dt, gm[0])
-            gm = gm[:3] + (gm[3] + dt * tau_c / (1.0 + dt * terms.alpha),)
+        if gm is not None and contact_rows is not None and self._contact_rows_seen is contact_rows \
+                and np.any(self._contact_lam > 0.0):
+            # In contact the solve's own angular momentum stands: the rebalance below would
+            # have to know the contact forces' torque over the step, and one taken at the
+            # step start either undid the floor's torque (a caterpillar lifting its head was
+            # turned by up to 0.3 rad/s a step and created energy) or, at a static dt, turned
+            # a resting block into the floor.
+            gm = gm[:3] + (None,)
             base = base[:3] + (gm,) + base[4:]
         q, qd, frames, x_full, v_full = self._predict(Q, base, dt)
         self.q, self.qd, self.frames = q, qd, frames
@@ -261,7 +262,7 @@ class Step:
                           frames.w[mv] if gm is None else gm[2] + w[mv])
             R1 = frames.R[mv]
             frames.w[mv] = np.linalg.solve(R1 @ inertia[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
-        if gm is not None:
+        if gm is not None and gm[3] is not None:
             # Carrying the state by exp(dt W) also turns its angular momentum by that
             # rotation; where L is not parallel to W (products of inertia) this is a
             # spurious precession, first order in dt. Restore the balance of angular
