@@ -46,16 +46,19 @@ def _inside_cone(c, mu):
     return bool(np.all(np.linalg.norm(c["friction"], axis=1) <= mu * c["normal_force"] + tol))
 
 
+def _random_problem(rng, m_end):
+    """A random contact problem of 1..m_end-1 contacts: (m, W (3m, 3m) SPD, g (3m,), mu (m,))."""
+    m = int(rng.integers(1, m_end))
+    B = rng.normal(size=(3 * m, 3 * m))
+    return m, B @ B.T + 0.05 * np.eye(3 * m), rng.normal(size=3 * m), rng.uniform(0.0, 2.0, size=m)
+
+
 def test_solver_satisfies_coulombs_law_on_random_problems():
     # Strong normal-tangent coupling and mu up to 2 are harder than any body's contacts;
     # the three starts of _newton_restarts solve all 300 (the first alone left 4).
     rng = np.random.default_rng(1)
     for _ in range(300):
-        m = int(rng.integers(1, 12))
-        B = rng.normal(size=(3 * m, 3 * m))
-        W = B @ B.T + 0.05 * np.eye(3 * m)
-        g = rng.normal(size=3 * m)
-        mu = rng.uniform(0.0, 2.0, size=m)
+        m, W, g, mu = _random_problem(rng, 12)
         lam, info = solve_coulomb(W, g, mu)
         assert not info["unconverged"]
         assert _coulomb_violation(W, g, mu, lam) < 1e-9
@@ -69,11 +72,7 @@ def test_compiled_newton_matches_the_numpy_reference():
     rng = np.random.default_rng(4)
     smooth = 0
     for _ in range(100):
-        m = int(rng.integers(1, 10))
-        B = rng.normal(size=(3 * m, 3 * m))
-        W = B @ B.T + 0.05 * np.eye(3 * m)
-        g = rng.normal(size=3 * m)
-        mu = rng.uniform(0.0, 2.0, size=m)
+        m, W, g, mu = _random_problem(rng, 10)
         lam0 = np.abs(rng.normal(size=(m, 3)))
         a, ia = fr._newton(W, g, mu, lam0, 1e-12, fr.NEWTON_FIRST)
         b, ib = fr._newton_numpy(W, g, mu, lam0, 1e-12, fr.NEWTON_FIRST)

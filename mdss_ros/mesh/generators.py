@@ -104,6 +104,19 @@ def sheet(
     )
 
 
+def _graded_arguments(size, cell_coarse, cell_fine, focus, origin, radius):
+    """The checked arguments both graded blocks share: (size (3,), h_coarse, h_fine,
+    focus (3,), origin (3,), radius); MeshError names the bad one."""
+    size = _positive_vector(size, 3, "size")
+    h_coarse = _positive_scalar(cell_coarse, "cell_coarse")
+    h_fine = _positive_scalar(cell_fine, "cell_fine")
+    focus = _finite_vector(focus, 3, "focus")
+    origin = _finite_vector(origin, 3, "origin")
+    if h_fine > h_coarse:
+        raise MeshError(f"cell_fine ({h_fine}) must not exceed cell_coarse ({h_coarse})")
+    return size, h_coarse, h_fine, focus, origin, _positive_scalar(radius, "radius", allow_zero=True)
+
+
 def graded_block(
     size: Sequence[float],
     cell_coarse: float,
@@ -135,14 +148,8 @@ def graded_block(
     Returns:
         TetMesh with exact outer dimensions, numbered as in ``box``.
     """
-    size = _positive_vector(size, 3, "size")
-    h_coarse = _positive_scalar(cell_coarse, "cell_coarse")
-    h_fine = _positive_scalar(cell_fine, "cell_fine")
-    focus = _finite_vector(focus, 3, "focus")
-    origin = _finite_vector(origin, 3, "origin")
-    if h_fine > h_coarse:
-        raise MeshError(f"cell_fine ({h_fine}) must not exceed cell_coarse ({h_coarse})")
-    radius = _positive_scalar(radius, "radius", allow_zero=True)
+    size, h_coarse, h_fine, focus, origin, radius = _graded_arguments(size, cell_coarse, cell_fine, focus,
+                                                                      origin, radius)
     growth = _positive_scalar(growth, "growth")
     if growth <= 1.0:
         raise MeshError(f"growth must be > 1, got {growth!r}")
@@ -480,14 +487,8 @@ def graded_bcc_block(
 
     from mdss_ros.mesh.tetmesh import orient_tets, remove_unreferenced, signed_volumes
 
-    size = _positive_vector(size, 3, "size")
-    h_coarse = _positive_scalar(cell_coarse, "cell_coarse")
-    h_fine = _positive_scalar(cell_fine, "cell_fine")
-    focus = _finite_vector(focus, 3, "focus")
-    origin = _finite_vector(origin, 3, "origin")
-    if h_fine > h_coarse:
-        raise MeshError(f"cell_fine ({h_fine}) must not exceed cell_coarse ({h_coarse})")
-    radius = _positive_scalar(radius, "radius", allow_zero=True)
+    size, h_coarse, h_fine, focus, origin, radius = _graded_arguments(size, cell_coarse, cell_fine, focus,
+                                                                      origin, radius)
     layers = int(layers)
     if layers < 1:
         raise MeshError(f"layers must be >= 1, got {layers!r}")
