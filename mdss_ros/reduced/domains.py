@@ -211,6 +211,7 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
                           basis_info={"n_linear": int(basis.n_linear), "n_derivatives": int(basis.n_derivatives),
                                       "layers": layers, "region_vertices": int(len(sub_v)),
                                       "hinged_vertices": int((~present).sum()),
+                                      "derivatives_on": basis.derivative_source,
                                       "eigenvalues": [float(v) for v in basis.eigenvalues],
                                       "seconds": time.perf_counter() - t0, "cached": False})
 
