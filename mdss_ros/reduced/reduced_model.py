@@ -496,7 +496,9 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         output read at its end (hammock: one of its two surface passes a step). The state
         is compared by value (q and the frames are small, and tests write them in place);
         a model with full-space domains, whose state holds every vertex, is not kept."""
-        if q is not None or frames is not None or x_full is not None or self.F:
+        if q is not None or frames is not None or x_full is not None or self.F or len(ids) < 256:
+            # A few loaded vertices cost nothing to rebuild, and kept they would push the
+            # surface out of the two entries.
             return reconstruct.positions(self.layout, ids, self.q if q is None else q,
                                          self.frames if frames is None else frames,
                                          self.x_full if x_full is None else x_full)
