@@ -414,7 +414,7 @@ def _is_int(v):
 
 
 def modal_basis(X, tets, material, vertex_mass, r, fixed=(), keep=None, n_linear=None,
-                derivatives=True, derivative_method="fd", derivatives_on="region"):
+                derivatives=True, derivative_method="fd", derivatives_on="domain"):
     """Mass-orthonormal, rigid-free basis of one domain (linear modes + modal derivatives, PCA).
 
     X: (n, 3) rest positions of the sub-mesh used for the stiffness (the domain's elements
@@ -427,7 +427,7 @@ def modal_basis(X, tets, material, vertex_mass, r, fixed=(), keep=None, n_linear
         the result is re-projected and re-orthonormalised on keep;
     n_linear: number of linear modes (default _default_n_linear); derivatives: stack modal
         derivatives; derivative_method: "fd" (central differences of K);
-    derivatives_on: "region" (default) or "domain". Only matters for a free domain whose
+    derivatives_on: "domain" (default) or "region". Only matters for a free domain whose
         keep set is smaller than the sub-mesh (a grown region): "domain" differentiates the
         linear modes restricted to the keep vertices with their rigid part there removed,
         on the keep vertices' elements plus one ring (keep_derivatives); "region"
