@@ -90,10 +90,19 @@ def test_reduced_block_on_floor_reaction_equals_weight(domains, full_space):
     assert phi.min() > -1e-6
 
 
-def _fast_ball_run(kind, check_shadow, young=1e5):
+def _fast_ball_run(kind, check_shadow, young=1e5, continuous=False):
     """A sphere driven at 5 m/s into a soft block (5.6 cm per 1/90 s step, more than its
     radius). Returns after asserting per step: finite, no surface vertex inside the ball,
-    and (check_shadow) the surface vertices in the ball's path stay ahead of its centre."""
+    and (check_shadow) the surface vertices in the ball's path stay ahead of its centre.
+
+    continuous: also every model (sub-)step the step kept, in between its ends (the guard's
+    rejected attempts are discarded; when the kept chain cannot be told, every attempt is
+    checked): no surface vertex's path (linear over the sub-step, against the ball's linear
+    sweep) gets 2 mm into the ball (unilateral.sphere_time_of_impact), and at every step's
+    end the ball's centre is outside the body's volume (its winding number with respect to
+    the surface is 0). Returns (sim, deepest path depth (m))."""
+    from mdss_ros.contact.colliders import winding_numbers
+    from mdss_ros.contact.unilateral import sphere_time_of_impact
     scene = _block_scene({"floor": {"shape": "plane"},
                           "ball": {"shape": "sphere", "radius": 0.04, "position": [-0.3, 0.0, 0.05]}},
                          kind=kind, integrator={"dt": 1 / 90, "newton_iterations": 1})
@@ -102,6 +111,22 @@ def _fast_ball_run(kind, check_shadow, young=1e5):
         scene["model"].update({"domains": {"count": 2}, "modes": 10, "cubature": {"samples": 0}})
     sim = Simulator(scene)
     ids = sim.body.surface.vertex_ids
+    ball = sim.colliders["ball"]
+    which = list(sim.colliders).index("ball")
+    substeps = []
+    if continuous:
+        model_step = sim.model.step
+
+        def recorded(*args, **kwargs):
+            # The ball's pose at the sub-step's start is the contact spec's "starts" entry.
+            start = kwargs["contact"]["starts"][which] if kwargs.get("contact") else None
+            c0 = ball.position.copy() if start is None else np.array(start[0])
+            x0 = sim.model.positions_of(ids).copy()
+            out = model_step(*args, **kwargs)
+            substeps.append((c0, x0, ball.position.copy(), sim.model.positions_of(ids).copy()))
+            return out
+        sim.model.step = recorded
+    deepest = -np.inf
     for k in range(12):                                  # from x = -0.3 to +0.37: through the block's volume
         ball_x = -0.3 + 5.0 * (k + 1) / 90
         sim.set_collider_pose("ball", (ball_x, 0.0, 0.05))
@@ -109,10 +134,30 @@ def _fast_ball_run(kind, check_shadow, young=1e5):
         x = sim.vertex_positions()[ids]
         assert np.all(np.isfinite(x))
         assert sim.colliders["ball"].signed_distance(x)[0].min() > -2e-3
+        if continuous:
+            assert len(substeps) >= sim.stats().get("collider_substeps", 1)
+            for c0, x0, c1, x1 in _kept_substeps(substeps, sim.model.positions_of(ids)):
+                deepest = max(deepest, float(sphere_time_of_impact(x0, x1, c0, c1, ball.radius)[1].max()))
+            assert deepest < 2e-3, (k, deepest)
+            substeps.clear()
+            assert abs(winding_numbers(ball.position, x, sim.body.surface.triangles)[0]) < 0.5, k
         if check_shadow:
             shadow = x[(x[:, 1] ** 2 + (x[:, 2] - 0.05) ** 2) < 0.02 ** 2]
             assert np.all(shadow[:, 0] > ball_x), (k, ball_x, shadow[:, 0].min())
-    return sim
+    return (sim, deepest) if continuous else sim
+
+
+def _kept_substeps(substeps, end):
+    """The model sub-steps [(c0, x0, c1, x1), ...] of one step that led to its end positions:
+    walked back from the last one ending there, each one's start the end of the one before
+    (the guard restores the step's start for every retry). All of them when no chain ends
+    there (a state changed outside the model's step)."""
+    chain, target = [], end
+    for sub in reversed(substeps):
+        if np.array_equal(sub[3], target):
+            chain.append(sub)
+            target = sub[1]
+    return chain[::-1] if chain else substeps
 
 
 @pytest.mark.parametrize("kind", ["full", "reduced"])
@@ -123,11 +168,91 @@ def test_fast_collider_does_not_tunnel(kind):
     assert sim.stats().get("collider_substeps", 1) > 1
 
 
-@pytest.mark.xfail(strict=True, reason="a jelly-soft (1e4 Pa) frictionless block wraps round a 5 m/s sphere "
-                   "and vertex + face contacts at the end of each sub-step still let it through (needs "
-                   "continuous collision detection)")
-def test_fast_collider_does_not_tunnel_through_jelly():
-    _fast_ball_run("full", check_shadow=True, young=1e4)
+@pytest.mark.parametrize("kind", ["full", "reduced"])
+def test_fast_collider_does_not_cross_jelly(kind):
+    """E = 1e4 Pa: the ball outruns the block's elastic waves (3.7 m/s longitudinal, 2.0 m/s
+    shear; 11.6 and 6.2 m/s at 1e5 Pa) and buries itself in it. Checked continuously, no
+    vertex path enters the ball within any sub-step (the deepest: 0.027 mm full; reduced
+    none, 0.012 mm clear) and the ball's centre never enters the body's volume."""
+    sim, deepest = _fast_ball_run(kind, check_shadow=False, young=1e4, continuous=True)
+    assert sim.stats().get("collider_substeps", 1) > 1
+    assert deepest < 2e-3
+
+
+@pytest.mark.parametrize("kind", [
+    pytest.param("full", marks=pytest.mark.xfail(
+        strict=True, reason="not tunnelling: the full-space block's front face wraps round the ball like a "
+                            "sock and at step 8 the sock's neck closes behind it: front-face vertices 3.5-10 cm "
+                            "off the ball's line at rest (outside the 2 cm shadow) are drawn to within 2 cm of "
+                            "it 5-16 cm behind the centre, having gone round the ball "
+                            "(test_fast_collider_does_not_cross_jelly checks the same run continuously; "
+                            "docs/verification.md, Contact)")),
+    "reduced"])
+def test_fast_collider_does_not_tunnel_through_jelly(kind):
+    _fast_ball_run(kind, check_shadow=True, young=1e4)
+
+
+def test_sphere_time_of_impact_closed_form_and_sampling():
+    from mdss_ros.contact.unilateral import sphere_time_of_impact
+    # Head-on and 0.6 off the line through a unit sphere at rest: x(t) = -2 + 4 t meets
+    # x^2 + y^2 = 1 at t = 1/4 and t = 0.3; the deepest points are the centre and 0.6 from it.
+    p0 = np.array([[-2.0, 0.0, 0.0], [-2.0, 0.6, 0.0], [-2.0, 1.5, 0.0], [0.2, 0.0, 0.0], [-3.0, 0.0, 0.0]])
+    p1 = p0 + [4.0, 0.0, 0.0]
+    p1[4] = [-2.5, 0.0, 0.0]                             # stops short
+    toi, depth = sphere_time_of_impact(p0, p1, np.zeros(3), np.zeros(3), 1.0)
+    np.testing.assert_allclose(toi[:2], [0.25, 0.3], rtol=1e-14)
+    np.testing.assert_allclose(depth[:3], [1.0, 0.4, -0.5], rtol=1e-14)
+    assert toi[2] == np.inf and toi[3] == 0.0 and toi[4] == np.inf and depth[4] == -1.5
+    # Only the relative motion counts: the same paths seen from a sphere swept by (5, -1, 2).
+    shift = np.array([5.0, -1.0, 2.0])
+    toi_m, depth_m = sphere_time_of_impact(p0, p1 + shift, np.zeros(3), shift, 1.0)
+    np.testing.assert_allclose(toi_m, toi, rtol=1e-12)
+    np.testing.assert_allclose(depth_m, depth, atol=1e-12)
+    # Random motions of points and sphere against 20,001 samples of t.
+    rng = np.random.default_rng(5)
+    p0, p1 = rng.normal(size=(300, 3)), rng.normal(size=(300, 3))
+    c0, c1, r = rng.normal(size=3) * 0.3, rng.normal(size=3) * 0.3, 0.7
+    toi, depth = sphere_time_of_impact(p0, p1, c0, c1, r)
+    t = np.linspace(0.0, 1.0, 20001)
+    d = np.linalg.norm(p0[:, None] + t[None, :, None] * (p1 - p0)[:, None] - (c0 + t[:, None] * (c1 - c0))[None],
+                       axis=2) - r                       # (300, 20001)
+    # Between samples the distance changes by at most the relative speed times half a gap.
+    speed = np.linalg.norm((p1 - p0) - (c1 - c0), axis=1)
+    assert np.all(-d.min(axis=1) <= depth + 1e-12) and np.all(depth + d.min(axis=1) <= speed * 0.5 / 20000 + 1e-12)
+    inside = d <= 0.0
+    hit = inside.any(axis=1)
+    assert np.array_equal(np.isfinite(toi), hit)
+    first = t[np.argmax(inside, axis=1)]
+    assert np.all(np.abs(toi[hit] - first[hit]) <= 1.0 / 20000 + 1e-12)
+
+
+def test_swept_depth_of_capsule_matches_sampling():
+    from mdss_ros.contact.colliders import make_collider
+    from mdss_ros.contact.unilateral import swept_depth
+    rng = np.random.default_rng(6)
+    q = np.array([0.3, -0.2, 0.5, 0.8]) / np.linalg.norm([0.3, -0.2, 0.5, 0.8])
+    cap = make_collider("rod", {"shape": "capsule", "radius": 0.3, "half_height": 0.5,
+                                "position": [0.4, 0.1, -0.2], "orientation": q.tolist()})
+    start = (np.array([-0.3, 0.2, 0.1]), q)
+    p0, p1 = rng.normal(size=(200, 3)), rng.normal(size=(200, 3))
+    p1[:5] = p0[:5] + (cap.position - start[0])          # at rest relative to the capsule
+    depth = swept_depth(cap, start, p0, p1)
+    t = np.linspace(0.0, 1.0, 4001)
+    ref = np.full(len(p0), -np.inf)
+    for s in t:                                          # 4001 poses of the sweep
+        moved = cap.at((1 - s) * start[0] + s * cap.position, q)
+        ref = np.maximum(ref, -moved.distance((1 - s) * p0 + s * p1))
+    # Between samples the distance changes by at most the relative speed times half a gap.
+    speed = np.linalg.norm((p1 - p0) - (cap.position - start[0]), axis=1)
+    assert np.all(ref <= depth + 1e-12) and np.all(depth - ref <= speed * 0.5 / 4000 + 1e-12)
+    assert (depth > 0).sum() > 20                         # some paths cross the capsule
+    ball = make_collider("ball", {"shape": "sphere", "radius": 0.3})
+    d_ball = swept_depth(ball, (np.ones(3), q), p0, p1)
+    ref = np.max([0.3 - np.linalg.norm((1 - s) * (p0 - 1.0) + s * p1, axis=1) for s in t], axis=0)
+    speed = np.linalg.norm(p1 - p0 + 1.0, axis=1)
+    assert np.all(ref <= d_ball + 1e-12) and np.all(d_ball - ref <= speed * 0.5 / 4000 + 1e-12)
+    with pytest.raises(ValueError):
+        swept_depth(cap, (start[0], np.array([0.0, 0.0, 0.0, 1.0])), p0, p1)
 
 
 def test_segment_triangle_closest_pair_matches_dense_sampling():

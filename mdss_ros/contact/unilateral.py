@@ -241,6 +241,74 @@ def closest_points_on_segment(a, b, p):
     return a + t[:, None] * ab
 
 
+def sphere_time_of_impact(p0, p1, c0, c1, radius):
+    """Continuous contact of points against a moving sphere over one (sub-)step.
+
+    The points move linearly from p0 to p1 ((n, 3) each) while the sphere's centre moves
+    linearly from c0 to c1 ((3,) each) over the same interval, t in [0, 1]. Relative to the
+    centre a point then moves on the segment d(t) = a + t b, a = p0 - c0, b = (p1 - c1) - a,
+    so both answers are closed forms of |d(t)|^2 = radius^2, a quadratic in t:
+
+    toi (n,): the first t at which the point touches the sphere (0 for a point that starts
+    inside or on it, inf for one that never touches it in [0, 1]);
+    depth (n,): how deep the point gets inside the sphere on the way, radius - min |d(t)|
+    (<= 0 for a point that stays outside). A point outside at both ends with a positive
+    depth went inside the sphere in between, which contacts evaluated at the end of the
+    (sub-)step alone cannot see; a path through the sphere has a depth near its radius.
+    """
+    p0, p1 = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
+    c0, c1 = np.asarray(c0, dtype=np.float64), np.asarray(c1, dtype=np.float64)
+    a = p0 - c0
+    b = (p1 - c1) - a
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = np.einsum("ij,ij->i", a, b)
+    c = np.einsum("ij,ij->i", a, a) - radius * radius
+    moving = bb > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_min = np.where(moving, np.clip(-ab / np.where(moving, bb, 1.0), 0.0, 1.0), 0.0)
+        closest = a + t_min[:, None] * b
+        depth = radius - np.sqrt(np.einsum("ij,ij->i", closest, closest))
+        # The smaller root of bb t^2 + 2 ab t + c = 0, as c / (-ab + sqrt(disc)): no
+        # cancellation when the point approaches (ab < 0), the only case with a root ahead.
+        disc = ab * ab - bb * c
+        approach = moving & (ab < 0.0) & (disc >= 0.0)
+        root = np.where(approach, c / np.where(approach, -ab + np.sqrt(np.maximum(disc, 0.0)), 1.0), np.inf)
+    toi = np.where(c <= 0.0, 0.0, np.where(root <= 1.0, root, np.inf))
+    return toi, depth
+
+
+def swept_depth(collider, start, p0, p1):
+    """How deep points moving linearly from p0 to p1 ((n, 3) each) get inside a round
+    collider (sphere or capsule) moving from the pose start = (position (3,), orientation
+    (4,)) to its current pose over the same interval: radius - the least distance of each
+    point's path to the collider's centre or axis (n,), <= 0 for a path that stays outside.
+
+    A sphere is sphere_time_of_impact's depth. A capsule must keep its orientation (a pure
+    translation): in its frame a point's path is then a segment, and the least distance is
+    the one between that segment and the axis (Ericson 5.1.9). ValueError for other shapes
+    or a rotating capsule."""
+    p0, p1 = np.asarray(p0, dtype=np.float64), np.asarray(p1, dtype=np.float64)
+    c0 = np.asarray(start[0], dtype=np.float64)
+    if collider.shape == "sphere":
+        return sphere_time_of_impact(p0, p1, c0, collider.position, collider.radius)[1]
+    q0 = np.asarray(start[1], dtype=np.float64)
+    if collider.shape != "capsule" or abs(abs(float(q0 @ collider.orientation)) - 1.0) > 1e-12:
+        raise ValueError(f"swept_depth: a sphere or a translating capsule, not a {collider.shape}"
+                         f"{' that rotates' if collider.shape == 'capsule' else ''}")
+    a, b = _axis(collider.at(c0, collider.orientation))           # the axis at the start pose
+    d1 = b - a
+    rel = (p1 - p0) - (collider.position - c0)                     # each path in the capsule's frame
+    s, t = _segment_segment(a, d1, p0, rel)
+    # _segment_segment takes the second segments to have length; a point that does not move
+    # relative to the capsule is its distance to the axis.
+    still = np.einsum("ij,ij->i", rel, rel) == 0.0
+    if still.any():
+        s[still] = np.clip((p0[still] - a) @ d1 / float(d1 @ d1), 0.0, 1.0)
+        t[still] = 0.0
+    gap = (a + s[:, None] * d1) - (p0 + t[:, None] * rel)
+    return collider.radius - np.sqrt(np.einsum("ij,ij->i", gap, gap))
+
+
 def _segment_segment(a, d1, c, d2):
     """Parameters s (T,), t (T,) in [0, 1] of the closest points a + s d1 and c + t d2 of
     a segment (a, d1 (3,), d1 != 0) and segments (c, d2 (T, 3)); Ericson 5.1.9."""
