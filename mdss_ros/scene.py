@@ -145,7 +145,8 @@ SCHEMA = {
         "budget": (_any, {}),
         # model.kind: meshless (mdss_ros/meshless, docs/method.md §19): neighbours per node, support
         # radius in mean neighbour distances, volume term k_v in units of mu, time integrator and
-        # RK4 sub-steps per step ("auto": from the highest frequency at rest).
+        # RK4 sub-steps per step ("auto": from the highest frequency at rest); tet_barrier: the
+        # material's compression barrier also on the tets of the mesh the nodes come from.
         "meshless": {
             "neighbours": (_neighbours, 16),
             "support_scale": (_support_scale, 2.0),
@@ -155,6 +156,7 @@ SCHEMA = {
             "integration": (_choice("consistent", "nodal"), "consistent"),
             "stabilisation": (_nonneg, 0.1),
             "volumes": (_choice("mesh", "support"), "mesh"),
+            "tet_barrier": (_bool, True),
         },
         # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
         # a diverging one with more Newton iterations and sub-steps.

@@ -20,9 +20,10 @@ _CHUNK = 64
 
 
 @njit(cache=True)
-def _node_law(F, mu, lam, kv, P, H, want_hessian):
+def _node_law(F, mu, lam, kv, kb, jb, P, H, want_hessian):
     """psi of the meshless law at F (3, 3); fills P (3, 3) and, if want_hessian, H (9, 9)
-    with H[3p + J, 3q + L] = d2psi / dF_pJ dF_qL (forces.py's stvk_volume)."""
+    with H[3p + J, 3q + L] = d2psi / dF_pJ dF_qL (forces.py's stvk_volume). kb, jb: the
+    compression barrier kb/(3 jb) (jb - J)^3 for J < jb (kb = 0: none)."""
     C = F.T @ F
     E = 0.5 * (C - np.eye(3))
     tr = E[0, 0] + E[1, 1] + E[2, 2]
@@ -45,8 +46,15 @@ def _node_law(F, mu, lam, kv, P, H, want_hessian):
         for b in range(3):
             ee += E[a, b] * E[a, b]
     psi = mu * ee + 0.5 * lam * tr * tr + 0.5 * kv * (J - 1.0) ** 2
-    FS = F @ S
+    # The volume terms are a function U(J) of J alone: g = U'(J), hJ = U''(J).
     g = kv * (J - 1.0)
+    hJ = kv
+    if kb > 0.0 and J < jb:
+        d = jb - J
+        psi += kb * d * d * d / (3.0 * jb)
+        g -= kb * d * d / jb
+        hJ += 2.0 * kb * d / jb
+    FS = F @ S
     for a in range(3):
         for b in range(3):
             P[a, b] = FS[a, b] + g * cof[a, b]
@@ -57,13 +65,13 @@ def _node_law(F, mu, lam, kv, P, H, want_hessian):
         for J_ in range(3):
             for q in range(3):
                 for L in range(3):
-                    h = lam * F[p, J_] * F[q, L] + mu * F[p, L] * F[q, J_] + kv * cof[p, J_] * cof[q, L]
+                    h = lam * F[p, J_] * F[q, L] + mu * F[p, L] * F[q, J_] + hJ * cof[p, J_] * cof[q, L]
                     if p == q:
                         h += S[L, J_]
                     if J_ == L:
                         h += mu * FFt[p, q]
                     H[3 * p + J_, 3 * q + L] = h
-    # k_v (J - 1) eps_pqm eps_JLN F_mN: the second derivative of det F, nonzero for p != q, J != L.
+    # U'(J) eps_pqm eps_JLN F_mN: the second derivative of det F, nonzero for p != q, J != L.
     for p in range(3):
         for q in range(3):
             if p == q:
@@ -96,7 +104,8 @@ def _project_psd(H):
 
 
 @njit(cache=True, parallel=True)
-def node_kernel(x, stencil, c, V, mu, lam, kv, S, want_hessian, project, energy_out, force_out, stiff_out):
+def node_kernel(x, stencil, c, V, mu, lam, kv, kb, jb, S, want_hessian, project, energy_out, force_out,
+                stiff_out):
     """Energy, stencil forces and stencil stiffness of every node (module docstring).
     S with zero rows means no stabilisation."""
     n, w = stencil.shape
@@ -118,7 +127,7 @@ def node_kernel(x, stencil, c, V, mu, lam, kv, S, want_hessian, project, energy_
                     for a in range(w):
                         s += xs[a, p] * c[i, a, J_]
                     F[p, J_] = s
-            psi = _node_law(F, mu, lam, kv, P, H, want_hessian)
+            psi = _node_law(F, mu, lam, kv, kb, jb, P, H, want_hessian)
             Vi = V[i]
             e = Vi * psi
             for a in range(w):
@@ -163,7 +172,7 @@ def node_kernel(x, stencil, c, V, mu, lam, kv, S, want_hessian, project, energy_
 node_kernel_serial = serial_twin(node_kernel)
 
 
-def node_pass(x, stencil, c, V, mu, lam, kv, S, want_hessian=False, project=False, stiff_out=None):
+def node_pass(x, stencil, c, V, mu, lam, kv, S, want_hessian=False, project=False, stiff_out=None, kb=0.0, jb=0.2):
     """(energy (n,), forces (n, w, 3), stiffness (n, 3w, 3w) or None) of every node."""
     n, w = stencil.shape
     energy = np.empty(n)
@@ -174,6 +183,7 @@ def node_pass(x, stencil, c, V, mu, lam, kv, S, want_hessian=False, project=Fals
         stiff = np.empty((0, 3 * w, 3 * w))
     S_arr = S if S is not None else np.empty((0, w, w))
     kernel = pick(node_kernel, node_kernel_serial, n, weight=8 * w)
-    kernel(np.ascontiguousarray(x, dtype=np.float64), stencil, c, V, float(mu), float(lam), float(kv), S_arr,
+    kernel(np.ascontiguousarray(x, dtype=np.float64), stencil, c, V, float(mu), float(lam), float(kv), float(kb),
+           float(jb), S_arr,
            bool(want_hessian), bool(project), energy, force, stiff)
     return energy, force, (stiff if want_hessian else None)

@@ -14,6 +14,7 @@ node i (build_forces):
     m_i = rho V_i                 so sum m_i = rho V_mesh exactly
     c_i                           mls.py, corrected by integration.py (consistent)
     F_i, E = sum_i V_i psi(F_i) + E_hg    forces.py, kernels.py, integration.py
+    + the compression barrier on the tets' J   forces.MeshlessForces.tet_barrier (tet_barrier: true)
 
 State x, v (n, 3). Time integration:
     implicit (default): backward Euler with Newton on the analytic stiffness, the same
@@ -59,7 +60,7 @@ class Build:
 
 DEFAULTS = {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1, "integrator": "implicit",
             "substeps": "auto", "integration": "consistent", "stabilisation": 0.1,
-            "volumes": "mesh"}
+            "volumes": "mesh", "tet_barrier": True}
 
 
 def build_forces(X, tets, triangles, material, settings, pinned=()):
@@ -94,7 +95,11 @@ def build_forces(X, tets, triangles, material, settings, pinned=()):
     S = (stabilisation_matrices(X, op.stencil, op.c, op.weights, V, material.mu, float(cfg["stabilisation"]))
          if cfg["stabilisation"] > 0 else None)
     kv = float(cfg["volume_stiffness"]) * material.mu
-    forces = MeshlessForces(X, op, V, material.density * V, material.mu, material.lam, kv, pinned, S)
+    # The FEM materials' compression barrier (docs/method.md §3.4) on the nodal J, same keys.
+    kb = float(getattr(material, "barrier", 0.0)) * material.mu
+    jb = float(getattr(material, "barrier_j", 0.2))
+    forces = MeshlessForces(X, op, V, material.density * V, material.mu, material.lam, kv, pinned, S, kb, jb,
+                            tets if cfg["tet_barrier"] else None)
     return forces, Build(nb, int(grown.sum()), int((op.cond > COND_LIMIT).sum()), residual)
 
 
@@ -159,4 +164,7 @@ class MeshlessModel(VertexState):
                 f"({nb.h.min():.3g} to {nb.h.max():.3g} m); {cond}",
                 f"  {integ}; fit-residual stabilisation {cfg['stabilisation']:g} mu; integration weights "
                 f"{'the tet mesh vertex volumes' if cfg['volumes'] == 'mesh' else '[HZ] eq. 2 support volumes'}; "
-                f"[HZ]'s StVK law with k_v = {cfg['volume_stiffness']:g} mu; {scheme}"]
+                f"[HZ]'s StVK law with k_v = {cfg['volume_stiffness']:g} mu"
+                + (f", compression barrier {self.force_model.kb / self.force_model.mu:g} mu below J = "
+                   f"{self.force_model.jb:g} on the nodes{' and the tets' if self.force_model.tets is not None else ''}"
+                   if self.force_model.kb > 0 else "") + f"; {scheme}"]

@@ -40,7 +40,7 @@ nodes are the vertices of an isotropically graded unstructured mesh of the same 
 (`meshless_mesh`: nested BCC lattices of cube edge h = a_ref / level round the contact,
 doubling every `meshless_layers` cells, Delaunay-tetrahedralised), as [HZ] graded an
 unstructured tetrahedralisation; its static step is the same backward Euler (its law is its
-own StVK with a volume term; only young, poisson, density are read). On the FEM rows'
+own StVK with a volume term and the compression barrier, which acts only below J = 0.2). On the FEM rows'
 tensor-product block (`meshless_nodes: graded_block`) cells 0.02 m one way and 0.15-0.5 m the
 other left two thirds of the nodes with singular moment matrices and the force control did not
 converge (§19.7); on the BCC nodes every moment matrix has condition < 10. Its stiffness has

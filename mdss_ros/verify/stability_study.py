@@ -14,12 +14,12 @@ Base point: young 1e7, poisson 0.3, dt 1/90, spin 0, force 1. The design is
     {1e-4, 1/30} x {0, 50} x {1, 1e3}: every pair of extremes meets (see `corners`),
 minus duplicates: 58 cells, each for model kind {full, reduced} and material {stvk,
 corotated, neohookean}, and for the meshless model (docs/method.md §19) with one material
-(MESHLESS_MATERIAL, stvk): its law is its own StVK with a volume term whatever
-`material.model` says (only young, poisson, density are read), so the three materials would
-run the same model three times. --quick runs one-at-a-time around the base (14 cells) plus
-the 4 corners with spin 50, fewer steps. `--kinds` picks model kinds (e.g. the meshless
-column alone), `--materials` materials (the meshless column takes MESHLESS_MATERIAL if
-picked, else the first one picked).
+(MESHLESS_MATERIAL, stvk): its law is its own StVK with a volume term and the compression
+barrier whatever `material.model` says (young, poisson, density and the barrier keys are
+read), so the three materials would run the same model three times. --quick runs
+one-at-a-time around the base (14 cells) plus the 4 corners with spin 50, fewer steps.
+`--kinds` picks model kinds (e.g. the meshless column alone), `--materials` materials (the
+meshless column takes MESHLESS_MATERIAL if picked, else the first one picked).
 
 Setup of a cell: spin 0 clamps the end x = 0 (a cantilever); spin > 0 frees the body
 (no pins) and spins it about the tilted axis (0.2, 0.3, 1) (tumbling, not a principal
