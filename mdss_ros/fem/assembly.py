@@ -82,7 +82,9 @@ def stiffness_pattern(tets, n_verts, pinned=()):
 
 
 @njit(cache=True)
-def _scatter_add(values, scatter, out):
+def scatter_add(values, scatter, out):
+    """out[scatter[e, j]] += values[e, j] for every entry with scatter >= 0 (a pattern's
+    scatter, (n, k) into out's nnz): the assembly kernel, also used for element subsets."""
     n, k = scatter.shape
     for e in range(n):
         for j in range(k):
@@ -97,7 +99,7 @@ def assemble_matrix(pattern, element_mats, out=None):
         out = np.zeros(pattern.nnz)
     else:
         out[:] = 0.0
-    _scatter_add(np.ascontiguousarray(element_mats).reshape(len(element_mats), -1), pattern.scatter, out)
+    scatter_add(np.ascontiguousarray(element_mats).reshape(len(element_mats), -1), pattern.scatter, out)
     return out
 
 

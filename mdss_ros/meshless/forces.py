@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from ..fem.assembly import StiffnessPattern, _scatter_add, assemble_matrix, assemble_vector, stiffness_pattern
+from ..fem.assembly import StiffnessPattern, assemble_matrix, assemble_vector, scatter_add, stiffness_pattern
 from ..fem.force_model import FreeDofs
 from .kernels import node_pass
 
@@ -240,7 +240,7 @@ class MeshlessForces(FreeDofs):
         Eb, fb, Kb = self.tet_barrier(x, want_hessian=True, project=project)
         if fb is not None:
             E, f = E + Eb, f + fb
-            _scatter_add(np.ascontiguousarray(Kb[1]).reshape(len(Kb[0]), -1), self.tet_scatter[Kb[0]], K)
+            scatter_add(np.ascontiguousarray(Kb[1]).reshape(len(Kb[0]), -1), self.tet_scatter[Kb[0]], K)
         t2 = time.perf_counter()
         self.timings = {"element_ms": 1e3 * (t1 - t0), "scatter_ms": 1e3 * (t2 - t1)}
         return E, f, K
