@@ -47,8 +47,11 @@ beyond half the drift budget;
 reported "recovered", action "untangled (deformation x s)"). A reduced model needs it because
 its subspace may hold no path out of an inverted state (a full-space model gets out through
 its materials' compression barrier, fem/materials.py).
-If none passes the hard checks, the state before the step is restored and the step is
-marked "failed": the guard never lets a NaN out. Simulated time still advances (the
+If no rung passes from a start state with inverted elements (a tangle the last steps
+kept), that start is untangled as above (if that creates no energy beyond the same budget)
+and the ladder is walked once more from there (action "untangled the start (deformation x
+s), ..."). If none passes the hard checks, the state before the step is restored and the
+step is marked "failed": the guard never lets a NaN out. Simulated time still advances (the
 simulation goes on, holding its last good state).
 
 Per step the guard reports (merged into Simulator.stats()):
@@ -220,28 +223,24 @@ class StabilityGuard:
         before = self._current(gravity, step_count)
         snap = save()
         ladder = self._ladder()
-        first_reason, best = None, None
-        for attempt, (n_sub, newton, implicit, project) in enumerate(ladder):
-            if attempt:
-                restore(snap)
-            result = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit, project)
-            stats, verdict, after = result
-            if verdict.ok:
-                break
-            if first_reason is None:
-                first_reason = ",".join(verdict.hard + verdict.soft)
-            if not verdict.hard and (best is None or verdict.inverted < best[1].inverted):
-                best = (attempt, verdict, save(), stats, after, self._work, self._projected)
-            if not verdict.hard and n_sub >= SOFT_MAX_SUBSTEPS:
-                # Soft signs that survive sub-steps are usually physical (a crushed element):
-                # do not spend the whole ladder on them every step.
-                attempt = None
-                break
-        else:
-            attempt = None
+        attempt, best, stats, verdict, after, first_reason = self._walk(ladder, advance, save, restore, snap,
+                                                                        before, f_app, gravity, dt)
+        start_untangled = None
+        if attempt is None and best is None and before.inverted:
+            # No rung passes from a tangled start (inverted elements the last steps kept):
+            # untangle the start state as the untangle_after rule would, and walk once more.
+            restore(snap)
+            start_untangled = self._untangle_start(before, gravity)
+            if start_untangled is not None:
+                factor, before_u = start_untangled
+                snap_u = save()
+                attempt, best, stats, verdict, after, _ = self._walk(ladder, advance, save, restore, snap_u,
+                                                                     before_u, f_app, gravity, dt)
+                if attempt is None and best is None:
+                    start_untangled = None
         report = {"guard_attempts": (attempt if attempt is not None else len(ladder) - 1) + 1,
                   "guard_reason": first_reason or "", "guard_substeps": 1, "guard_action": ""}
-        if attempt == 0:
+        if attempt == 0 and start_untangled is None:
             report["stability"] = "stable"
         elif attempt is not None:
             n_sub, newton, implicit, _ = ladder[attempt]
@@ -273,6 +272,12 @@ class StabilityGuard:
             # The reduced solver met an indefinite A and took an LU Newton step; the checks
             # above accepted its result. Counted so a run shows how often that happened.
             self.totals["guard_indefinite_steps"] += 1
+        if start_untangled is not None:
+            report["guard_reason"] = ",".join(r for r in (report["guard_reason"], "no rung from a tangled start") if r)
+            report["guard_action"] = ", ".join(a for a in (f"untangled the start (deformation x {start_untangled[0]:.3f})",
+                                                           report["guard_action"]) if a)
+            report["guard_untangled"] = float(start_untangled[0])
+            self.totals["guard_untangles"] += 1
         if report["stability"] != "failed" and after.finite:
             after = self._untangle(after, report, gravity)
         if report["stability"] != "stable":
@@ -287,6 +292,45 @@ class StabilityGuard:
         report["guard_work"] = float(self._work)         # work of loads and contacts over the step
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
+
+    def _walk(self, ladder, advance, save, restore, snap, before, f_app, gravity, dt):
+        """Try the ladder's rungs from the snapshot until one passes. Returns (attempt index
+        or None, best soft-only attempt or None, stats, verdict, after, first reason)."""
+        first_reason, best, stats, verdict, after = None, None, None, None, before
+        for attempt, (n_sub, newton, implicit, project) in enumerate(ladder):
+            if attempt:
+                restore(snap)
+            stats, verdict, after = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit,
+                                                  project)
+            if verdict.ok:
+                return attempt, best, stats, verdict, after, first_reason
+            if first_reason is None:
+                first_reason = ",".join(verdict.hard + verdict.soft)
+            if not verdict.hard and (best is None or verdict.inverted < best[1].inverted):
+                best = (attempt, verdict, save(), stats, after, self._work, self._projected)
+            if not verdict.hard and n_sub >= SOFT_MAX_SUBSTEPS:
+                # Soft signs that survive sub-steps are usually physical (a crushed element):
+                # do not spend the whole ladder on them every step.
+                break
+        return None, best, stats, verdict, after, first_reason
+
+    def _untangle_start(self, before, gravity):
+        """(factor, Measure) of the step's start state untangled (ReducedModel.untangle), or
+        None (the model cannot, nothing changed, or it would create energy: the start state
+        is then as it was)."""
+        s = self.settings
+        if not (s.inversion and self.model.can_untangle):
+            return None
+        snap = self.model.get_state()
+        factor = self.model.untangle(self.tets)
+        if factor is None or factor == 1.0:
+            self.model.set_state(snap)
+            return None
+        untangled = measure(self.model, self.tets, gravity, s.inversion)
+        if not untangled.finite or not self._untangle_affordable(before, untangled):
+            self.model.set_state(snap)
+            return None
+        return factor, untangled
 
     def _untangle(self, after, report, gravity):
         """Inverted elements left after `untangle_after` accepted steps in a row: a reduced
