@@ -21,6 +21,6 @@ if sys.prefix != sys.base_prefix:
 from .version import __version__  # noqa: E402
 
 from .scene import load_scene  # noqa: E402
-from .simulator import Simulator  # noqa: E402
+from .budget import Simulator  # noqa: E402  (resolves model.budget; the automatic model has one)
 
 __all__ = ["load_scene", "Simulator", "__version__"]

@@ -101,6 +101,23 @@ def _tetrahedralised_surface(path, spec, cache):
     return mesh
 
 
+def pinned_mesh_overrides(scene, folder, cache=None):
+    """Scene overrides that pin a surface-file body to one tet mesh: {} for a generator or
+    a volume file, else {"body.mesh": {"file": <folder>/<name>_tets.vtu}} after meshing
+    it once (or reading it from cache). Studies that build each configuration in its own,
+    emptied cache (mdss tradeoff) need this: fTetWild meshes a surface differently every
+    time, and errors between runs on different meshes mean nothing."""
+    from .mesh import save_mesh
+    spec = scene["body"]["mesh"]
+    if "file" not in spec or Path(spec["file"]).suffix.lower() not in SURFACE_EXTENSIONS:
+        return {}
+    mesh = build_mesh(spec, scene.base_dir, scene.source, cache)
+    path = Path(folder).resolve() / f"{scene.name}_tets.vtu"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_mesh(path, mesh)
+    return {"body.mesh": {"file": str(path)}}
+
+
 def build_body(scene, cache=None):
     """Body of a validated Scene. cache: PrecomputeCache for tetrahedralised surface files."""
     src = scene.source

@@ -28,17 +28,22 @@ import time
 from .errors import SceneError
 from .precompute import PrecomputeCache, cache_key
 from .scene import BUDGET_DEFAULT_MODES as DEFAULT_MODES, check_budget, load_scene  # noqa: F401
+from .simulator import Simulator as BaseSimulator
 
-def candidate_overrides(model, modes):
+def candidate_overrides(model, modes, domains=None):
     """Scene overrides of the candidate with `modes` per domain: cubature samples scaled
-    with the modes in the scene's ratio (exact stays exact); the budget switched off."""
+    with the modes in the scene's ratio (exact stays exact); the budget switched off.
+    domains: a model.domains value for this candidate (None: the scene's own)."""
     cub = copy.deepcopy(model.get("cubature") or {})
     base_r = int(model["modes"])
     for key in ("samples", "interface_samples"):
         n = cub.get(key)
         if isinstance(n, int) and not isinstance(n, bool) and n > 0:
             cub[key] = max(1, int(math.ceil(n * modes / base_r)))
-    return {"model.modes": int(modes), "model.cubature": cub, "model.budget": {}}
+    ov = {"model.modes": int(modes), "model.cubature": cub, "model.budget": {}}
+    if domains is not None:
+        ov["model.domains"] = copy.deepcopy(domains)
+    return ov
 
 
 def _settings(budget, scene):
@@ -47,12 +52,40 @@ def _settings(budget, scene):
             "truth_newton_iterations": 30, "truth_tolerance": 1e-8}
 
 
+def domain_options(scene, cache=None):
+    """[(label, model.domains value or None)] the probe tries: the scene's own domains
+    (None), or budget.domains ("auto" or a count each), without those that split this body
+    exactly as an earlier one does (a body without limbs: auto is one domain)."""
+    import numpy as np
+
+    from .body import build_body
+    from .reduced.partition import domain_labels
+    wanted = scene["model"]["budget"].get("domains")
+    if not wanted:
+        return [("scene's domains", None)]
+    body = build_body(scene, cache)
+    out, seen = [], []
+    for w in wanted:
+        spec = {"auto": True} if w == "auto" else {"count": int(w)}
+        labels, names = domain_labels(spec, body.vertices, body.tets)
+        if any(len(names) == n and np.array_equal(labels, lab) for lab, n in seen):
+            continue
+        seen.append((labels, len(names)))
+        label = (f"auto ({len(names)} domain{'s' if len(names) > 1 else ''})" if w == "auto"
+                 else f"{len(names)} domain{'s' if len(names) > 1 else ''}")
+        out.append((label, spec))
+    return out
+
+
 def probe(scene, progress=None, cache=None):
     """Walk the candidate ladder of a scene with a budget. Returns the report dict:
-    {"goal", "target", "chosen": {"modes", "overrides"}, "met": bool, "candidates": [...],
-    "horizon", "seconds"}."""
+    {"goal", "target", "chosen": {"modes", "overrides"[, "domains", "measured"]}, "met": bool,
+    "candidates": [...], "horizon", "seconds"}.
+
+    The ladder walks the modes upwards. With budget.domains (max_error only) it measures
+    every domain option at each mode count, and stops at the first mode count where one
+    is within the error, taking the fastest of those."""
     from .accuracy import ground_truth, metrics, play
-    from .simulator import Simulator
     say = progress or (lambda msg: None)
     budget = scene["model"]["budget"]
     goal = "ms_per_step" if "ms_per_step" in budget else "max_error"
@@ -60,38 +93,71 @@ def probe(scene, progress=None, cache=None):
     cfg = _settings(budget, scene)
     t0 = time.perf_counter()
     plain = _without_budget(scene)
+    options = domain_options(scene, cache)
     truth = None
     if goal == "max_error":
         say(f"budget: ground truth for the error probe (full space, {cfg['horizon']:.3g} s of the timeline)")
-        truth = ground_truth(plain, {}, scene.dt, cfg, say)
+        truth = ground_truth(plain, {}, scene.dt, cfg, say, cache=cache)
     rows = []
-    chosen = None
-    for r in budget["modes"]:
-        ov = candidate_overrides(scene["model"], r)
-        sim = Simulator(plain, overrides=ov, cache=cache)
+    chosen = measured = None
+    # probe: exact walks the ladder with exact forces (no cubature to train per candidate:
+    # the subspace sets the error) and trains only the chosen candidate's cubature. If its
+    # sampled forces take it past the error, the walk goes on to the next mode count.
+    exact = budget.get("probe", "scene") == "exact"
+    sampled = exact and int((scene["model"].get("cubature") or {}).get("samples", 0) or 0) > 0
+
+    def run(r, label, domains, with_cubature):
+        ov = candidate_overrides(scene["model"], r, domains)
+        if exact and not with_cubature:
+            ov["model.cubature"] = {"samples": 0, "interface": "exact"}
+        sim = BaseSimulator(plain, overrides=ov, cache=cache)
         rec = play(sim, cfg["horizon"], cfg["probe_every"], cfg["warmup"], truth=truth)
         row = {"modes": int(r), "dofs": int(sim.stats()["dofs"]), "step_ms": rec["step_ms"],
-               "samples": ov["model.cubature"].get("samples", 0)}
+               "samples": ov["model.cubature"].get("samples", 0), "domains": label,
+               "domains_spec": domains, "n_domains": int(sim.stats()["domains"])}
+        if with_cubature:
+            row["with_cubature"] = True
         if truth is not None:
             row["rms_rel"] = metrics(rec, truth).get("rms_rel", float("nan"))
-        rows.append(row)
-        say(f"budget: {r} modes per domain: {row['dofs']} DOFs, {row['step_ms']:.3g} ms/step"
+        say(f"budget: {r} modes per domain, {label}" + (f", {row['samples']} samples" if with_cubature else "")
+            + f": {row['dofs']} DOFs, {row['step_ms']:.3g} ms/step"
             + (f", RMS surface error {100 * row['rms_rel']:.3g} %" if "rms_rel" in row else ""))
+        return row
+
+    for r in budget["modes"]:
+        here = [run(r, label, domains, False) for label, domains in options]
+        rows += here
         if goal == "ms_per_step":
-            if row["step_ms"] <= target:
-                chosen = row
-            else:
-                break                      # more modes cost more
-        elif row["rms_rel"] <= target:
-            chosen = row
-            break                          # the cheapest within the error
+            if here[0]["step_ms"] <= target:        # one domain option (check_budget)
+                chosen = here[0]
+                continue
+            break                                    # more modes cost more
+        within = [x for x in here if x["rms_rel"] <= target]
+        if not within:
+            continue
+        best = min(within, key=lambda x: x["step_ms"])            # the cheapest within the error
+        if not sampled:
+            chosen = best
+            break
+        measured = run(r, best["domains"], best["domains_spec"], True)
+        if measured["rms_rel"] <= target:
+            chosen = best
+            break
+        say(f"budget: with its cubature {r} modes per domain is past the error; trying more modes")
+        measured = None
     met = chosen is not None
     if not met:                            # nothing fits: the cheapest (ms) or the most accurate (error)
         chosen = rows[0] if goal == "ms_per_step" else min(rows, key=lambda x: x.get("rms_rel", math.inf))
-    report = {"goal": goal, "target": target, "met": met, "chosen": {"modes": chosen["modes"],
-              "overrides": candidate_overrides(scene["model"], chosen["modes"])},
-              "candidates": rows, "horizon": cfg["horizon"], "seconds": time.perf_counter() - t0}
-    say(f"budget: chose {chosen['modes']} modes per domain "
+    if sampled and measured is None:       # the chosen one as it will run, cubature included
+        measured = run(chosen["modes"], chosen["domains"], chosen["domains_spec"], True)
+    report = {"goal": goal, "target": target, "met": met,
+              "chosen": {"modes": chosen["modes"], "domains": chosen["domains"],
+                         "overrides": candidate_overrides(scene["model"], chosen["modes"], chosen["domains_spec"])},
+              "candidates": rows, "horizon": cfg["horizon"]}
+    if measured is not None:
+        report["chosen"]["measured"] = measured
+    report["seconds"] = time.perf_counter() - t0
+    say(f"budget: chose {chosen['modes']} modes per domain, {chosen['domains']} "
         + ("" if met else f"(no candidate meets {goal} <= {target:g}; took the "
            f"{'cheapest' if goal == 'ms_per_step' else 'most accurate'}) ")
         + f"after a {report['seconds']:.1f} s probe")
@@ -131,10 +197,22 @@ def resolve_budget(scene, progress=None, cache=None):
     return load_scene(scene, report["chosen"]["overrides"]), report
 
 
+class Simulator(BaseSimulator):
+    """`mdss_ros.Simulator`: mdss_ros.simulator.Simulator, with the scene's model.budget
+    resolved first (from the cache, or probed once and cached). The automatic model of a
+    scene without a `model` section has a budget, so this is the class users get."""
+
+    def __init__(self, scene, overrides=None, progress=None, cache=None, budget=None):
+        scene = load_scene(scene, overrides)
+        if scene["model"].get("budget"):
+            if budget is not None:
+                raise SceneError(f"{scene.source}: a budget report was given with a scene whose "
+                                 f"model.budget is not resolved; pass the scene resolve_budget returned")
+            scene, budget = resolve_budget(scene, progress, cache)
+        super().__init__(scene, progress=progress, cache=cache, budget=budget)
+
+
 def build_simulator(scene, overrides=None, progress=None, cache=None):
     """A Simulator of a scene (Scene, path, name or dict) with its model.budget resolved
     first (probed once, then from the cache): what `mdss run`, the node and replay build."""
-    from .simulator import Simulator
-    scene = load_scene(scene, overrides)
-    scene, report = resolve_budget(scene, progress, cache)
-    return Simulator(scene, progress=progress, cache=cache, budget=report)
+    return Simulator(scene, overrides, progress=progress, cache=cache)

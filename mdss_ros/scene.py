@@ -119,8 +119,10 @@ SCHEMA = {
     "handles": (dict, {}),
     "colliders": (dict, {}),
     "model": {
-        "kind": (_choice("full", "reduced", "meshless"), "full"),
-        "domains": (_any, {"count": 1}),
+        "kind": (_choice("full", "reduced", "meshless", "auto"), "full"),    # auto: resolved on load
+        # No domains given: the product places them (reduced/auto_domains.py; a body
+        # without limbs gets one domain, "core").
+        "domains": (_any, {"auto": True}),
         "modes": (_posint, 20),
         "cubature": (_any, {"samples": 0, "interface": "exact"}),
         "integrator": {
@@ -208,9 +210,36 @@ def _validate(section, schema, where, source):
     return out
 
 
+# The automatic model: what a scene with no `model` section (or `model: auto`, or
+# `model.kind: auto`) gets. A reduced model with automatic domains (weighed against one
+# domain), cubature at 10 samples per mode, and the modes the budget ladder finds for 5 %
+# RMS surface error against full FEM over the scene's first second. Measured on
+# msg_scenes/bunny.yaml (a user's OBJ, 18K tets, 1 domain): 8 modes, 4.9 % error, 0.3 ms
+# a step against 196-251 ms for full FEM (README).
+AUTOMATIC_MODEL = {"kind": "reduced", "domains": {"auto": True}, "modes": 16,
+                   "cubature": {"samples": 160, "interface": "exact"}}
+AUTOMATIC_BUDGET = {"max_error": 0.05, "probe": "exact", "domains": ["auto", 1]}
+
+
+def automatic_model(model):
+    """The model section of `model.kind: auto`: AUTOMATIC_MODEL under the keys the scene
+    gives (they win). The budget ladder chooses the modes unless the scene fixes them
+    (model.modes) or gives its own budget."""
+    out = copy.deepcopy(AUTOMATIC_MODEL)
+    out.update({k: copy.deepcopy(v) for k, v in model.items() if k != "kind"})
+    given = model.get("budget")
+    if "modes" not in model and not (isinstance(given, dict) and ("ms_per_step" in given or "max_error" in given)):
+        # the automatic budget, with what the scene says of it (horizon, modes, probe); it
+        # weighs the automatic domains against one domain unless the scene places them
+        out["budget"] = dict(AUTOMATIC_BUDGET, **(given if isinstance(given, dict) else {}))
+        if "domains" in model and not (isinstance(given, dict) and "domains" in given):
+            del out["budget"]["domains"]
+    return out
+
+
 # model.budget (probed by mdss_ros/budget.py): its keys and the default ladder of modes
 BUDGET_DEFAULT_MODES = (4, 6, 8, 12, 16, 24, 32)
-BUDGET_KEYS = {"ms_per_step", "max_error", "horizon", "modes"}
+BUDGET_KEYS = {"ms_per_step", "max_error", "horizon", "modes", "probe", "domains"}
 
 
 def check_budget(budget, source="<scene>"):
@@ -230,6 +259,21 @@ def check_budget(budget, source="<scene>"):
         v = budget.get(k)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0):
             raise SceneError(f"{where}.{k}: expected a positive number, got {v!r}")
+    if budget.get("probe", "scene") not in ("scene", "exact"):
+        raise SceneError(f"{where}.probe: expected scene (probe each candidate as configured) or exact "
+                         f"(probe with exact forces, then build the chosen one's cubature), got {budget['probe']!r}")
+    if budget.get("probe") == "exact" and "ms_per_step" in budget:
+        raise SceneError(f"{where}.probe: exact times candidates without their cubature, so it cannot "
+                         f"choose for ms_per_step; use probe: scene")
+    domains = budget.get("domains")
+    if domains is not None:
+        if (not isinstance(domains, (list, tuple)) or not domains or not all(
+                d == "auto" or (isinstance(d, int) and not isinstance(d, bool) and d >= 1) for d in domains)):
+            raise SceneError(f"{where}.domains: expected a list of auto and domain counts, like [auto, 1], "
+                             f"got {domains!r}")
+        if "ms_per_step" in budget and len(domains) > 1:
+            raise SceneError(f"{where}.domains: weighing domain options needs an error goal (max_error); "
+                             f"ms_per_step does not measure the error that tells them apart")
     modes = budget.get("modes", BUDGET_DEFAULT_MODES)
     if (not isinstance(modes, (list, tuple)) or not modes
             or not all(isinstance(m, int) and not isinstance(m, bool) and m >= 1 for m in modes)):
@@ -287,6 +331,7 @@ class Scene:
     source: str = "<dict>"
     base_dir: Path = field(default_factory=Path.cwd)
     warnings: list = field(default_factory=list)     # problems that do not stop a run (printed by mdss run)
+    automatic_model: bool = False                    # the file gave no model section (automatic_model)
 
     def __getitem__(self, key):
         return self.data[key]
@@ -307,6 +352,7 @@ def load_scene(path_or_dict, overrides=None):
     """
     if isinstance(path_or_dict, Scene):
         raw, source, base = copy.deepcopy(path_or_dict.data), path_or_dict.source, path_or_dict.base_dir
+        was_automatic = path_or_dict.automatic_model
     elif isinstance(path_or_dict, dict):
         raw, source, base = path_or_dict, "<dict>", Path.cwd()
     else:
@@ -318,13 +364,22 @@ def load_scene(path_or_dict, overrides=None):
             raise SceneError(f"{path}: not valid YAML: {err}") from err
         if raw is None:
             raise SceneError(f"{path}: the file is empty")
+    if not isinstance(raw, dict):
+        raise SceneError(f"{source}: expected a mapping of scene sections, got {type(raw).__name__}")
+    if raw.get("model") in (None, "auto"):
+        raw = dict(raw, model={"kind": "auto"})
     raw = apply_overrides(raw, overrides)
+    automatic = isinstance(raw.get("model"), dict) and raw["model"].get("kind") == "auto"
+    if automatic:
+        raw = dict(raw, model=automatic_model(raw["model"]))
+    automatic = automatic or (isinstance(path_or_dict, Scene) and was_automatic
+                              and raw["model"].get("kind") == "reduced")
     data = _validate(raw, SCHEMA, "", source)
     warnings = _check_sections(data, source)
     _check_body(data, source, Path(base))
     _check_colliders(data, source, Path(base))
     _check_model(data["model"], source)
-    return Scene(data=data, source=source, base_dir=Path(base), warnings=warnings)
+    return Scene(data=data, source=source, base_dir=Path(base), warnings=warnings, automatic_model=automatic)
 
 
 def _check_sections(data, source):

@@ -25,9 +25,10 @@ class Simulator:
     progress: callable(str) that hears long build steps; cache: a PrecomputeCache
     (default: $MDSS_CACHE_DIR or ~/.cache/mdss_ros; PrecomputeCache(enabled=False) turns it off).
     budget: the report of mdss_ros.budget.resolve_budget for a scene whose model.budget was
-    resolved (stats() and explain() show it). A scene with an unresolved model.budget is
-    refused: the probe runs Simulators itself, so it is done before, by
-    mdss_ros.budget.build_simulator (mdss run, the node and replay use it).
+    resolved (stats() and explain() show it). This class refuses a scene with an unresolved
+    model.budget: the probe runs Simulators itself. The public `mdss_ros.Simulator`
+    (mdss_ros.budget.Simulator) resolves it first, so a scene without a `model` section
+    (the automatic model has a budget) works there.
     """
 
     def __init__(self, scene, overrides=None, progress=None, cache=None, budget=None):
@@ -35,8 +36,8 @@ class Simulator:
             scene = load_scene(scene, overrides)
         if scene["model"].get("budget"):
             raise SceneError(f"{scene.source}: model.budget {scene['model']['budget']} must be resolved before "
-                             f"a Simulator is built: use mdss_ros.budget.build_simulator(scene, ...) "
-                             f"(or resolve_budget(scene), then Simulator(scene, budget=report))")
+                             f"this Simulator is built: use mdss_ros.Simulator (it resolves it) or "
+                             f"mdss_ros.budget.build_simulator(scene, ...)")
         t0 = time.perf_counter()
         self.budget = budget
         self.scene = scene
@@ -458,12 +459,23 @@ class Simulator:
                          "(declare one under colliders: to turn it on)")
         if self.budget:
             bud = self.budget
-            cands = ", ".join(f"{c['modes']} modes {c['step_ms']:.3g} ms" + (f" {100 * c['rms_rel']:.3g} %"
-                                                                           if "rms_rel" in c else "")
+            several = len({c.get("domains") for c in bud["candidates"]}) > 1
+            cands = ", ".join(f"{c['modes']} modes" + (f" {c['domains']}" if several else "")
+                              + f" {c['step_ms']:.3g} ms" + (f" {100 * c['rms_rel']:.3g} %" if "rms_rel" in c else "")
                               for c in bud["candidates"])
             lines.append(f"budget {bud['goal']} <= {bud['target']:g}: chose {bud['chosen']['modes']} modes per "
-                         f"domain ({'met' if bud['met'] else 'NOT met: closest candidate'}; "
-                         f"{'cached probe' if bud.get('cached') else 'probe'} of {cands})")
+                         f"domain" + (f", {bud['chosen']['domains']}" if several else "")
+                         + f" ({'met' if bud['met'] else 'NOT met: closest candidate'}; "
+                         f"{'cached probe' if bud.get('cached') else 'probe'} of {cands})"
+                         + (f"; the probe used exact forces, and with its cubature the chosen model runs "
+                            f"{bud['chosen']['measured']['step_ms']:.3g} ms"
+                            + (f" at {100 * bud['chosen']['measured']['rms_rel']:.3g} %"
+                               if "rms_rel" in bud["chosen"]["measured"] else "")
+                            if "measured" in bud["chosen"] else ""))
+        if self.scene.automatic_model:
+            lines.append("model: automatic (the scene has no model section): reduced, domains placed from the "
+                         "body's shape (weighed against one domain by the budget), cubature at 10 samples per mode, modes from the budget ladder for 5 % RMS "
+                         "surface error against full FEM; give a model section to choose yourself")
         guard = self.scene["model"]["guard"]
         untangle = (f"; inverted elements a reduced model keeps for {guard['untangle_after']} steps are untangled"
                     if guard["untangle_after"] and self.model.can_untangle else "")
@@ -480,8 +492,9 @@ class Simulator:
         return lines
 
     def stats(self):
-        extra = {"budget": {k: self.budget[k] for k in ("goal", "target", "met")}
-                 | {"modes": self.budget["chosen"]["modes"]}} if self.budget else {}
+        extra = ({"budget": {k: self.budget[k] for k in ("goal", "target", "met")}
+                  | {"modes": self.budget["chosen"]["modes"], "domains": self.budget["chosen"].get("domains")}}
+                 if self.budget else {})
         return dict(self._stats, **extra, kind=self.model.kind, dofs=self.model.n_dofs,
                     domains=len(self.model.domain_poses()),
                     vertices=len(self.body.vertices), tets=len(self.body.tets), time=self.time)

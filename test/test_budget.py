@@ -66,7 +66,70 @@ def test_budget_needs_a_reduced_model():
         build_simulator(s)
 
 
-def test_a_simulator_refuses_an_unresolved_budget_and_names_the_way():
-    """The probe builds Simulators itself, so budgets are resolved before one is built."""
-    with pytest.raises(SceneError, match="build_simulator"):
-        Simulator(_scene({"ms_per_step": 5}))
+def test_a_simulator_resolves_its_budget_itself_and_a_second_one_reads_the_cache(tmp_path):
+    """Simulator(scene) with a model.budget probes once (budget-free Simulators inside, so
+    no recursion) and the next Simulator of the same scene takes the choice from the cache."""
+    budget = {"ms_per_step": 1e6, "modes": [2, 4], "horizon": 0.1}
+    sim = Simulator(_scene(budget), cache=PrecomputeCache(tmp_path))
+    assert sim.scene["model"]["modes"] == 4 and not sim.budget["cached"]
+    again = Simulator(_scene(budget), cache=PrecomputeCache(tmp_path))
+    assert again.budget["cached"] and again.scene["model"]["modes"] == 4
+    with pytest.raises(SceneError, match="not resolved"):
+        Simulator(_scene(budget), budget=sim.budget)
+    from mdss_ros.simulator import Simulator as Base      # the probe's own class refuses it
+    with pytest.raises(SceneError, match="use mdss_ros.Simulator"):
+        Base(_scene(budget))
+
+
+def test_an_exact_probe_walks_the_ladder_without_cubature_then_measures_the_chosen_with_it(tmp_path):
+    """budget.probe: exact (the automatic model's): candidates run with exact forces, and the
+    chosen one is then built with its cubature (samples scaled with its modes) and measured."""
+    budget = {"max_error": 0.05, "modes": [2, 4, 8], "horizon": 0.2, "probe": "exact"}
+    sim = build_simulator(_scene(budget, samples=30), cache=PrecomputeCache(tmp_path))
+    rep = sim.budget
+    assert [c["samples"] for c in rep["candidates"]] == [0] * len(rep["candidates"])     # exact forces
+    chosen = rep["chosen"]
+    assert chosen["measured"]["with_cubature"] and chosen["measured"]["modes"] == chosen["modes"]
+    assert sim.scene["model"]["cubature"]["samples"] == -(-30 * chosen["modes"] // 6) > 0
+    assert 0.0 < chosen["measured"]["rms_rel"] < 0.2          # the sampled forces are close to the exact ones
+    assert "probe used exact forces" in "\n".join(sim.explain())
+    with pytest.raises(SceneError, match="probe"):
+        load_scene(_scene({"max_error": 0.05, "probe": "fast"}))
+
+
+def _star3(budget):
+    """A small voxel star (hub and three arms, hub clamped): auto domains give 4 domains."""
+    return {"name": "star3", "body": {
+        "mesh": {"generator": "voxels", "cell": 0.03, "primitives": [
+            {"shape": "cylinder", "radius": 0.06, "height": 0.12, "position": [0, 0, 0.06]},
+            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [0.2, 0, 0.09]},
+            {"shape": "box", "size": [0.06, 0.33, 0.06], "position": [0, 0.2, 0.09]},
+            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [-0.2, 0, 0.09]}]},
+        "material": {"model": "neohookean", "young": 1e6, "poisson": 0.3, "density": 1000}},
+        "pins": [{"plane": {"point": [0, 0, 0.01], "normal": [0, 0, -1]}}],
+        "handles": {"tip": {"box": [[0.33, -1, -1], [1, 1, 1]]}},
+        "duration": 0.3,
+        "timeline": [{"t": 0.0, "topic": "wrench", "frame_id": "tip", "force": [0.0, 0.0, 30.0]}],
+        "model": {"kind": "auto", "budget": budget}}
+
+
+def test_the_budget_weighs_domain_options_and_takes_the_fastest_within_the_error(tmp_path):
+    """budget.domains: [auto, 1]: at each mode count of the ladder both splits run; the walk
+    stops at the first mode count where one is within the error and takes the faster."""
+    budget = {"max_error": 0.2, "modes": [2, 4, 8], "horizon": 0.2, "domains": ["auto", 1, 1]}
+    sim = Simulator(_star3(budget), cache=PrecomputeCache(tmp_path))
+    rep = sim.budget
+    labels = {c["domains"] for c in rep["candidates"]}
+    assert labels == {"auto (4 domains)", "1 domain"}          # the repeated count is tried once
+    last = [c for c in rep["candidates"] if c["modes"] == rep["chosen"]["modes"]]
+    within = [c for c in last if c["rms_rel"] <= 0.2]
+    assert rep["met"] and within and len(last) == 2
+    assert rep["chosen"]["domains"] == min(within, key=lambda c: c["step_ms"])["domains"]
+    assert all(min(c["rms_rel"] for c in rep["candidates"] if c["modes"] == m) > 0.2
+               for m in {c["modes"] for c in rep["candidates"]} if m < rep["chosen"]["modes"])
+    assert sim.stats()["domains"] == (4 if rep["chosen"]["domains"].startswith("auto") else 1)
+    assert rep["chosen"]["domains"] in "\n".join(sim.explain())
+    with pytest.raises(SceneError, match="needs an error goal"):
+        load_scene(_star3({"ms_per_step": 5, "domains": ["auto", 1]}))
+    with pytest.raises(SceneError, match="domains: expected a list"):
+        load_scene(_star3({"max_error": 0.1, "domains": "auto"}))

@@ -143,7 +143,6 @@ def test_a_surface_scene_loaded_twice_gets_the_same_tets_and_builds_nothing(tmp_
     np.testing.assert_array_equal(second.rest_positions(), first.rest_positions())
     assert {(stage, what) for stage, what, _ in cache.events} == {("tetmesh", "hit"), ("bases", "hit")}
     # Another edge length, or another file content, is meshed anew.
-    # Another edge length, or another file content, is meshed anew.
     from mdss_ros.body import build_body
     other = PrecomputeCache(tmp_path / "cache")
     build_body(load_scene(_surface_scene(tmp_path, edge_length=0.008)), other)
@@ -153,6 +152,24 @@ def test_a_surface_scene_loaded_twice_gets_the_same_tets_and_builds_nothing(tmp_
     longer = build_body(load_scene(_surface_scene(tmp_path)), other)
     assert [(s, w) for s, w, _ in other.events] == [("tetmesh", "miss"), ("tetmesh", "saved")]
     assert np.ptp(longer.vertices[:, 2]) > np.ptp(first.rest_positions()[:, 2]) + 0.009
+
+
+def test_a_study_pins_a_surface_body_to_one_tet_mesh(tmp_path):
+    """mdss tradeoff builds each configuration in an emptied cache; the surface body is
+    meshed once and every configuration reads that .vtu (fTetWild differs run to run)."""
+    from mdss_ros import load_scene
+    from mdss_ros.body import build_body, pinned_mesh_overrides
+    from mdss_ros.precompute import PrecomputeCache
+    scene = load_scene(_surface_scene(tmp_path))
+    cache = PrecomputeCache(tmp_path / "cache")
+    ov = pinned_mesh_overrides(scene, tmp_path / "study", cache)
+    assert ov["body.mesh"]["file"].endswith("_tets.vtu")
+    first = build_body(scene, cache)
+    for _ in range(2):                                   # fresh caches, the same tets
+        pinned = build_body(load_scene(_surface_scene(tmp_path), ov), PrecomputeCache(tmp_path / "other"))
+        np.testing.assert_array_equal(pinned.tets, first.tets)
+        np.testing.assert_allclose(pinned.vertices, first.vertices, rtol=0, atol=1e-12)
+    assert pinned_mesh_overrides(load_scene("cantilever"), tmp_path / "study") == {}
 
 
 def test_a_surface_with_a_small_hole_is_repaired_and_says_so(tmp_path, monkeypatch):

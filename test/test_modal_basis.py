@@ -391,10 +391,11 @@ def test_domain_derivatives_change_nothing_without_growth_or_for_a_pinned_domain
     a = modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, fixed=pins, keep=keep, derivatives_on="domain")
     b = modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, fixed=pins, keep=keep, derivatives_on="region")
     assert np.allclose(a.U, b.U)
-    # a free domain on a grown region takes them on the domain when asked (opt-in for now)
+    # a free domain on a grown region takes them on the domain (the default since session 11)
     keep = np.flatnonzero(mesh.vertices[:, 0] >= 0.2 - 1e-9)
-    assert modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, keep=keep).derivative_source == "region"
-    c = modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, keep=keep, derivatives_on="domain")
+    assert modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, keep=keep,
+                       derivatives_on="region").derivative_source == "region"
+    c = modal_basis(mesh.vertices, mesh.tets, mat, vm, 8, keep=keep)
     assert c.derivative_source == "domain" and c.U.shape == (3 * keep.size, 8)
     mk = np.repeat(vm[keep], 3)
     assert np.allclose(_gram(c.U, mk), np.eye(8), atol=1e-10)

@@ -14,7 +14,31 @@ BASE = {
 def test_defaults_filled_and_overrides_applied():
     s = load_scene(BASE, overrides={"model.integrator.dt": 0.01, "model.modes": 7})
     assert s.dt == 0.01 and s["model"]["modes"] == 7
-    assert s["model"]["kind"] == "full" and s["gravity"] == [0.0, 0.0, -9.81]
+    assert s["model"]["kind"] == "reduced" and s["gravity"] == [0.0, 0.0, -9.81]
+    assert s["model"]["budget"] == {}                     # modes given: the ladder does not choose them
+
+
+@pytest.mark.parametrize("model", [None, "auto", {"kind": "auto"}])
+def test_a_scene_without_a_model_section_gets_the_automatic_model(model):
+    """Issue 15: no model section -> reduced, domains placed from the shape, cubature on
+    (10 samples per mode), modes by the budget ladder to 5 % RMS error, probed with exact forces."""
+    raw = dict(BASE) if model is None else dict(BASE, model=model)
+    s = load_scene(raw)
+    m = s["model"]
+    assert s.automatic_model and m["kind"] == "reduced" and m["domains"] == {"auto": True}
+    assert m["cubature"]["samples"] == 10 * m["modes"] and m["cubature"]["interface"] == "exact"
+    assert m["budget"]["max_error"] == 0.05 and m["budget"]["probe"] == "exact"
+    assert load_scene(s).automatic_model                  # a Scene re-loaded keeps the flag
+
+
+def test_the_automatic_model_keeps_what_the_scene_gives_and_full_stays_full():
+    s = load_scene(dict(BASE, model={"kind": "auto", "domains": {"count": 3}, "integrator": {"dt": 0.02}}))
+    assert s["model"]["domains"] == {"count": 3} and s.dt == 0.02 and s["model"]["budget"]["max_error"] == 0.05
+    assert load_scene(BASE, {"model.kind": "full"})["model"]["kind"] == "full"
+    assert not load_scene(BASE, {"model.kind": "full"}).automatic_model
+    plain = load_scene(dict(BASE, model={"kind": "reduced"}))
+    assert not plain.automatic_model and plain["model"]["budget"] == {} and plain["model"]["domains"] == {"auto": True}
+    assert load_scene(dict(BASE, model={"integrator": {"dt": 0.02}}))["model"]["kind"] == "full"
 
 
 def test_cantilever_scene_file_loads_by_name():
@@ -62,3 +86,10 @@ def test_body_errors_name_the_problem():
 def test_yaml_exponent_floats_are_numbers():
     from mdss_ros.scene import read_yaml
     assert read_yaml("a: 1.0e7\nb: 1e5\nc: -2.5E-3") == {"a": 1e7, "b": 1e5, "c": -2.5e-3}
+
+
+def test_the_automatic_budget_takes_the_scenes_settings_and_yields_to_its_goal():
+    part = load_scene(BASE, {"model.budget.horizon": 0.5})["model"]["budget"]
+    assert part["max_error"] == 0.05 and part["horizon"] == 0.5 and part["probe"] == "exact"
+    own = load_scene(BASE, {"model.budget": {"ms_per_step": 3.0}})["model"]["budget"]
+    assert own["ms_per_step"] == 3.0 and "max_error" not in own

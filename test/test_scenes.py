@@ -47,6 +47,9 @@ FAST = {
     "soft_finger": ({"body.mesh.cell": 0.005, "model.modes": 6, "model.cubature": _cubature()}, 55),
     "star_limbs": ({"body.mesh.cell": 0.03, "model.modes": 4, "model.cubature": _cubature()}, 60),
     "grasp_lift": ({}, 80),             # full model, 384 tets: the pads have closed and begun the lift
+    # No model section: the automatic model, here with its modes fixed (no budget probe;
+    # test_automatic_model.py runs the probe) on a coarser tet mesh.
+    "bunny": ({"body.mesh.edge_length": 0.02, "model.modes": 6, "model.cubature": _cubature(interface=False)}, 40),
 }
 
 
@@ -132,6 +135,7 @@ BASE = {
     "pins": [{"box": [[-0.001, -1, -1], [0.001, 1, 1]]}],
     "handles": {"tip": {"box": [[0.199, -1, -1], [0.201, 1, 1]]}},
     "colliders": {"ball": {"shape": "sphere", "radius": 0.02, "position": [0.1, 0.0, 0.2]}},
+    "model": {"kind": "full"},          # without a model section it would get the automatic model
 }
 
 

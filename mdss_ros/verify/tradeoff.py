@@ -283,6 +283,8 @@ def tradeoff_report(scene_src, out, quick=False, settings=None, scene_overrides=
     out.mkdir(parents=True, exist_ok=True)
     base = dict(scene_overrides or {})
     scene = load_scene(scene_src, base)
+    from ..body import pinned_mesh_overrides      # every configuration on the same tets
+    base.update(pinned_mesh_overrides(scene, out))
     if cfg["horizon"] is None:
         cfg["horizon"] = float(scene["duration"])
     cfg["horizon"] = min(float(cfg["horizon"]), float(scene["duration"])) if not quick else float(cfg["horizon"])
