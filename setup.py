@@ -20,6 +20,8 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", _files("config/*")),
         ("share/" + package_name + "/msg_scenes", _files("msg_scenes/*")),
+        # surface meshes the scenes name relative to themselves (grasp_lift's pads, the bunny)
+        ("share/" + package_name + "/msg_scenes/meshes", _files("msg_scenes/meshes/*")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

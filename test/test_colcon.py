@@ -44,7 +44,8 @@ def test_colcon_builds_the_package_and_its_installed_node_runs(tmp_path):
     assert (prefix / "lib" / "mdss_ros" / "mdss").is_file()
     assert node_exe.read_text().splitlines()[0] == f"#!{sys.executable}"
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "mdss_ros").is_file()
-    for rel in ("package.xml", "config/params.yaml", "msg_scenes/cantilever.yaml"):
+    for rel in ("package.xml", "config/params.yaml", "msg_scenes/cantilever.yaml",
+                "msg_scenes/meshes/finger_pad.obj", "msg_scenes/meshes/bunny.obj"):
         assert (prefix / "share" / "mdss_ros" / rel).is_file(), rel
     site = next(prefix.glob("lib/python3*/site-packages"))
     assert (site / "mdss_ros" / "node.py").is_file()
