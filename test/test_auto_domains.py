@@ -11,6 +11,7 @@ from mdss_ros.mesh import select_vertices
 from mdss_ros.precompute import PrecomputeCache
 from mdss_ros.reduced.auto_domains import auto_domains
 from mdss_ros.reduced.partition import domain_labels, vertex_graph
+from small_bodies import star3
 
 
 def _auto(body, **settings):
@@ -93,16 +94,7 @@ def test_scene_key_and_bad_settings():
 def test_a_limbed_body_with_auto_domains_builds_explains_and_steps():
     """A small voxel star (a hub and three arms): the reduced model takes the auto domains,
     explains where they came from, and steps under gravity with the hub clamped."""
-    scene = {"name": "star3", "body": {
-        "mesh": {"generator": "voxels", "cell": 0.03, "primitives": [
-            {"shape": "cylinder", "radius": 0.06, "height": 0.12, "position": [0, 0, 0.06]},
-            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [0.2, 0, 0.09]},
-            {"shape": "box", "size": [0.06, 0.33, 0.06], "position": [0, 0.2, 0.09]},
-            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [-0.2, 0, 0.09]}]},
-        "material": {"model": "neohookean", "young": 1e6, "poisson": 0.3, "density": 1000}},
-        "pins": [{"plane": {"point": [0, 0, 0.01], "normal": [0, 0, -1]}}],
-        "model": {"kind": "reduced", "domains": "auto", "modes": 4,
-                  "cubature": {"samples": 0, "interface": "exact"}}}
+    scene = star3({"kind": "reduced", "domains": "auto", "modes": 4, "cubature": {"samples": 0, "interface": "exact"}})
     sim = Simulator(scene, cache=PrecomputeCache(enabled=False))
     assert sim.model.partition.names == ["core", "limb0", "limb1", "limb2"]
     text = "\n".join(sim.explain())

@@ -6,6 +6,7 @@ from mdss_ros.budget import build_simulator, candidate_overrides, check_budget
 from mdss_ros.errors import SceneError
 from mdss_ros.precompute import PrecomputeCache
 from mdss_ros.verify.reduced_reports import beam_scene
+from small_bodies import star3
 
 
 def _scene(budget, samples=0):
@@ -98,19 +99,9 @@ def test_an_exact_probe_walks_the_ladder_without_cubature_then_measures_the_chos
 
 
 def _star3(budget):
-    """A small voxel star (hub and three arms, hub clamped): auto domains give 4 domains."""
-    return {"name": "star3", "body": {
-        "mesh": {"generator": "voxels", "cell": 0.03, "primitives": [
-            {"shape": "cylinder", "radius": 0.06, "height": 0.12, "position": [0, 0, 0.06]},
-            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [0.2, 0, 0.09]},
-            {"shape": "box", "size": [0.06, 0.33, 0.06], "position": [0, 0.2, 0.09]},
-            {"shape": "box", "size": [0.33, 0.06, 0.06], "position": [-0.2, 0, 0.09]}]},
-        "material": {"model": "neohookean", "young": 1e6, "poisson": 0.3, "density": 1000}},
-        "pins": [{"plane": {"point": [0, 0, 0.01], "normal": [0, 0, -1]}}],
-        "handles": {"tip": {"box": [[0.33, -1, -1], [1, 1, 1]]}},
-        "duration": 0.3,
-        "timeline": [{"t": 0.0, "topic": "wrench", "frame_id": "tip", "force": [0.0, 0.0, 30.0]}],
-        "model": {"kind": "auto", "budget": budget}}
+    """The small voxel star (auto domains: 4) with a tip load on one arm."""
+    return star3({"kind": "auto", "budget": budget}, handles={"tip": {"box": [[0.33, -1, -1], [1, 1, 1]]}},
+                 duration=0.3, timeline=[{"t": 0.0, "topic": "wrench", "frame_id": "tip", "force": [0.0, 0.0, 30.0]}])
 
 
 def test_the_budget_weighs_domain_options_and_takes_the_fastest_within_the_error(tmp_path):
