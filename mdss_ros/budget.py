@@ -15,6 +15,11 @@ surface error against the full-space ground truth (same mesh, dt and inputs, New
 1e-8). Cost grows with the modes, so the ladder is walked upwards and stops once a
 candidate is past the budget (ms) or within it (error).
 
+`probe: exact` walks the ladder with exact forces and trains only the chosen candidate's
+cubature (measured again; the walk goes on if the samples take it past the error).
+`domains: [auto, 1]` runs each domain split at every mode count and keeps the fastest
+within the error. The automatic model (scene.automatic_model) uses both.
+
 The choice is stored in the precompute cache (stage "budget", keyed by the scene and the
 code), so a second start does not probe again; its report says what was chosen and why,
 and Simulator.explain() / stats()["budget"] show it. Timings are of this machine under
