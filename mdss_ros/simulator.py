@@ -474,8 +474,9 @@ class Simulator:
                             if "measured" in bud["chosen"] else ""))
         if self.scene.automatic_model:
             lines.append("model: automatic (the scene has no model section): reduced, domains placed from the "
-                         "body's shape (weighed against one domain by the budget), cubature at 10 samples per mode, modes from the budget ladder for 5 % RMS "
-                         "surface error against full FEM; give a model section to choose yourself")
+                         "body's shape (weighed against one domain by the budget), cubature at 10 samples per "
+                         "mode, modes from the budget ladder for 5 % RMS surface error against full FEM; give a "
+                         "model section to choose yourself")
         guard = self.scene["model"]["guard"]
         untangle = (f"; inverted elements a reduced model keeps for {guard['untangle_after']} steps are untangled"
                     if guard["untangle_after"] and self.model.can_untangle else "")

@@ -52,6 +52,7 @@ import numpy as np
 
 from ..accuracy import (dt_label as _dt_label, ground_truth, metrics, play, probe_error,  # noqa: F401
                         probe_steps, tip_vertices, truth_record)
+from ..body import pinned_mesh_overrides
 from ..errors import MdssError
 from ..precompute import PrecomputeCache
 from ..scene import load_scene
@@ -283,8 +284,7 @@ def tradeoff_report(scene_src, out, quick=False, settings=None, scene_overrides=
     out.mkdir(parents=True, exist_ok=True)
     base = dict(scene_overrides or {})
     scene = load_scene(scene_src, base)
-    from ..body import pinned_mesh_overrides      # every configuration on the same tets
-    base.update(pinned_mesh_overrides(scene, out))
+    base.update(pinned_mesh_overrides(scene, out))     # every configuration on the same tets
     if cfg["horizon"] is None:
         cfg["horizon"] = float(scene["duration"])
     cfg["horizon"] = min(float(cfg["horizon"]), float(scene["duration"])) if not quick else float(cfg["horizon"])
