@@ -179,6 +179,15 @@ def budget_key(scene):
     return cache_key("budget", code_hash("cubature"), data)
 
 
+def cached_choice(scene, cache=None):
+    """The scene with its cached budget choice applied, or None if the probe has not run
+    (the node's start notice: what a start will cost). A scene without a budget: itself."""
+    if not (scene["model"].get("budget") or {}):
+        return scene
+    hit = (cache if cache is not None else PrecomputeCache()).load("budget", budget_key(scene))
+    return None if hit is None else load_scene(scene, hit[1]["chosen"]["overrides"])
+
+
 def resolve_budget(scene, progress=None, cache=None):
     """(scene to build, budget report or None): a scene with model.budget gets the chosen
     modes and samples (from the cache, or from a probe that is then cached)."""

@@ -180,10 +180,18 @@ def available_scenes():
     return sorted(names)
 
 
-def precompute_notice(scene):
-    """What a start costs before the node spins, from model_build.cache_status(scene)."""
+def precompute_notice(scene, cache=None):
+    """What a start costs before the node spins, from model_build.cache_status(scene) of the
+    model it will build (a budget's cached choice; no choice yet: the probe comes first)."""
+    from .budget import cached_choice
     from .model_build import cache_status
-    status = cache_status(scene)
+    chosen = cached_choice(scene, cache)
+    if chosen is None:
+        return ("model.budget not probed yet (the automatic model of a scene without a model section has "
+                "one): this start runs the full-space truth and the mode ladder first, then builds the "
+                "chosen model and caches both; minutes on a large body (`mdss precompute SCENE` does it "
+                "ahead of time)")
+    status = cache_status(chosen, cache)
     if status.get("hit"):
         return f"precompute cache hit ({status.get('path')})"
     est = status.get("estimate_s")

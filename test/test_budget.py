@@ -124,3 +124,12 @@ def test_the_budget_weighs_domain_options_and_takes_the_fastest_within_the_error
         load_scene(_star3({"ms_per_step": 5, "domains": ["auto", 1]}))
     with pytest.raises(SceneError, match="domains: expected a list"):
         load_scene(_star3({"max_error": 0.1, "domains": "auto"}))
+
+
+def test_the_node_start_notice_says_a_budget_probe_comes_first_then_reads_its_choice(tmp_path):
+    from mdss_ros.node import precompute_notice
+    budget = {"ms_per_step": 1e6, "modes": [2, 4], "horizon": 0.1}
+    scene = load_scene(_scene(budget))
+    assert "not probed yet" in precompute_notice(scene, PrecomputeCache(tmp_path))
+    build_simulator(scene, cache=PrecomputeCache(tmp_path))
+    assert "cache hit" in precompute_notice(scene, PrecomputeCache(tmp_path))
