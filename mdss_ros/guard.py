@@ -315,19 +315,23 @@ class StabilityGuard:
         return None, best, stats, verdict, after, first_reason
 
     def _untangle_start(self, before, gravity):
-        """(factor, Measure) of the step's start state untangled (ReducedModel.untangle), or
-        None (the model cannot, nothing changed, or it would create energy: the start state
-        is then as it was)."""
+        """The start-state rule of step(): the step's start untangled (see _untangled_state)."""
+        return self._untangled_state(before, gravity)
+
+    def _untangled_state(self, reference, gravity):
+        """Untangle the model's current state (ReducedModel.untangle). Returns (factor,
+        Measure of the untangled state), or None with the state as it was: the model cannot
+        untangle, nothing is inverted, s = 0 is inverted too, or the untangle would create
+        energy beyond reference's budget (_untangle_affordable)."""
         s = self.settings
         if not (s.inversion and self.model.can_untangle):
             return None
         snap = self.model.get_state()
         factor = self.model.untangle(self.tets)
-        if factor is None or factor == 1.0:
-            self.model.set_state(snap)
+        if factor is None or factor == 1.0:       # the model left its state alone
             return None
         untangled = measure(self.model, self.tets, gravity, s.inversion)
-        if not untangled.finite or not self._untangle_affordable(before, untangled):
+        if not untangled.finite or not self._untangle_affordable(reference, untangled):
             self.model.set_state(snap)
             return None
         return factor, untangled
@@ -347,14 +351,10 @@ class StabilityGuard:
         if self._inverted_run < s.untangle_after:
             return after
         self._inverted_run = 0
-        snap = self.model.get_state()
-        factor = self.model.untangle(self.tets)
-        if factor is None or factor == 1.0:
+        done = self._untangled_state(after, gravity)
+        if done is None:
             return after
-        untangled = measure(self.model, self.tets, gravity, s.inversion)
-        if not untangled.finite or not self._untangle_affordable(after, untangled):
-            self.model.set_state(snap)
-            return after
+        factor, untangled = done
         if report["stability"] == "stable":
             report["stability"] = "recovered"
             self.totals["guard_recoveries"] += 1
