@@ -33,6 +33,7 @@ import numpy as np
 
 from ..fem.assembly import StiffnessPattern, assemble_matrix, assemble_vector, scatter_add, stiffness_pattern
 from ..fem.force_model import FreeDofs
+from ..mesh.tetmesh import signed_volumes
 from .kernels import node_pass
 
 _EPS = np.zeros((3, 3, 3))
@@ -174,11 +175,7 @@ class MeshlessForces(FreeDofs):
         if self.tets is None:
             return 0.0, None, None
         t = self.tets
-        e = [x[t[:, a]] - x[t[:, 0]] for a in (1, 2, 3)]                 # edges (t, 3) each
-        det = (e[0][:, 0] * (e[1][:, 1] * e[2][:, 2] - e[1][:, 2] * e[2][:, 1])
-               + e[0][:, 1] * (e[1][:, 2] * e[2][:, 0] - e[1][:, 0] * e[2][:, 2])
-               + e[0][:, 2] * (e[1][:, 0] * e[2][:, 1] - e[1][:, 1] * e[2][:, 0]))
-        act = np.flatnonzero(det / self.tet_det < self.jb)                # J = det Ds / det Dm
+        act = np.flatnonzero(6.0 * signed_volumes(x, t) / self.tet_det < self.jb)    # J = det Ds / det Dm
         if act.size == 0:
             return 0.0, None, None
         F = np.einsum("tap,taJ->tpJ", x[t[act]], self.tet_c[act])
