@@ -30,8 +30,12 @@ import json
 import math
 import time
 
+import numpy as np
+
+from .body import build_body
 from .errors import SceneError
 from .precompute import PrecomputeCache, cache_key
+from .reduced.partition import domain_labels
 from .scene import BUDGET_DEFAULT_MODES as DEFAULT_MODES, check_budget, load_scene  # noqa: F401
 from .simulator import Simulator as BaseSimulator
 
@@ -61,10 +65,6 @@ def domain_options(scene, cache=None):
     """[(label, model.domains value or None)] the probe tries: the scene's own domains
     (None), or budget.domains ("auto" or a count each), without those that split this body
     exactly as an earlier one does (a body without limbs: auto is one domain)."""
-    import numpy as np
-
-    from .body import build_body
-    from .reduced.partition import domain_labels
     wanted = scene["model"]["budget"].get("domains")
     if not wanted:
         return [("scene's domains", None)]
