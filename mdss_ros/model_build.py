@@ -22,13 +22,33 @@ def build_model(scene, body, progress=None, cache=None):
     if kind == "reduced":
         from .reduced.reduced_model import ReducedModel
         return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
-                            progress=progress, cache=cache)
+                            progress=progress, cache=cache, contact_vertices=contact_candidates(scene, body, model))
     if kind == "meshless":
         from .meshless.model import MeshlessModel
         return MeshlessModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
                              settings=model["meshless"], solver=model["solver"])
     raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "
                      f"(available: full, reduced, meshless)")
+
+
+def contact_candidates(scene, body, model):
+    """Free surface vertex ids (k,) where the scene's colliders can touch, nearest their
+    scene paths first (contact/envelope.py), at most model.contact_compliance of them;
+    None when the scene has no colliders or the setting is 0."""
+    count = int(model.get("contact_compliance", 0) or 0)
+    if count <= 0 or not scene["colliders"]:
+        return None
+    import numpy as np
+    from .contact.colliders import make_collider
+    from .contact.envelope import nearest_vertices
+    colliders = {name: make_collider(name, spec, scene.base_dir) for name, spec in scene["colliders"].items()}
+    surf = body.surface
+    free = np.setdiff1d(surf.vertex_ids, body.pinned)
+    faces = surf.faces
+    edges = body.vertices[faces[:, [1, 2, 0]]] - body.vertices[faces]
+    spacing = 0.5 * float(np.linalg.norm(edges, axis=2).mean())
+    ids, _ = nearest_vertices(scene, colliders, body.vertices[free], free, count, spacing)
+    return ids if len(ids) else None
 
 
 def estimate_precompute_seconds(n_tets, n_domains, modes, samples):

@@ -40,6 +40,8 @@ STAGE_CODE = {
                  "reduced/reduced_model.py::ReducedModel._restore_cubature",
                  "reduced/reduced_model.py::ReducedModel._build_interface_cubature",
                  "reduced/reduced_model.py::ReducedModel.training_simulation"],
+    "compliance": ["reduced/residual_compliance.py", "reduced/layout.py", "precompute.py",
+                   "reduced/reduced_model.py::ReducedModel._build_compliance"],
 }
 
 
@@ -190,3 +192,9 @@ def cubature_cache_key(bases_key, cubature_cfg, dt, alpha, beta, model_cfg):
     """Key of the cubature stage: the bases key plus training/cubature settings, dt, damping, coupling."""
     return cache_key("cubature", bases_key, code_hash("cubature"), cubature_cfg, float(dt), float(alpha),
                      float(beta), model_cfg.get("coupling") or {})
+
+
+def compliance_cache_key(bases_key, vertices):
+    """Key of the residual contact compliance: the bases key (mesh, material, pins,
+    domains, modes) plus the candidate vertices."""
+    return cache_key("compliance", bases_key, code_hash("compliance"), vertices)

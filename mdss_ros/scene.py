@@ -142,6 +142,10 @@ SCHEMA = {
         # sparse factorisation gains from every core).
         "blas_threads": (_blas_threads, "auto"),
         "full_space_domains": (list, []),
+        # Residual compliance of contact (reduced/residual_compliance.py, docs/method.md
+        # §14.2): the local dent a subspace cannot make, on up to this many free surface
+        # vertices nearest the colliders' paths in the scene; 0 turns it off.
+        "contact_compliance": (_nonneg_int, 800),
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
         "budget": (_any, {}),

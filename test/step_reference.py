@@ -4,8 +4,15 @@
 after 10, 50 and 100 steps to test/data/step_reference.npz; test_step_reference.py runs
 them again and compares. The file was written by the step as it stood before the
 compiled-step rewrite (commit eb22631): each change to how the step is computed must
-reproduce it to a relative 1e-10 of the displacement. A change to what the step computes
-(the method) rewrites the file in the same commit and says why.
+reproduce it to a relative 1e-10 of the displacement on the machine that wrote it. A
+change to what the step computes (the method) rewrites the file in the same commit and
+says why.
+
+On another CPU the BLAS and MKL kernels round differently, and 100 steps amplify it:
+on an AMD EPYC (OpenBLAS's SkylakeX kernels, MKL) "cubature_uniform" read 3.7e-12,
+1.0e-10 and 1.9e-10 at steps 10, 50 and 100 against the file written on the previous
+machine, with the code unchanged. The test therefore allows TOLERANCE, still four orders
+below the smallest change of method the file has recorded (7e-4).
 
 Rewritten since: the "contact" case (a free body on a floor), when the free body's angular
 momentum rebalance stopped acting in steps with contact (it had undone the contact forces'
@@ -16,6 +23,11 @@ not of its grown region's modes (docs/method.md §6.3). Nine cases moved by 7e-4
 of their displacement, "contact" (a free body squeezed sideways by a sphere on a
 frictionless floor) by 0.39. Against full FEM on the same cases (steps 10 and 50) no case
 got worse by more than 5e-4 and "contact" went from 0.130 to 0.113.
+Rewritten again, "contact" alone, when the residual contact compliance became the default
+(model.contact_compliance, issue 18): the pressed body now dents where the sphere and the
+floor touch it. Against full FEM at steps 10 / 50 / 100 its error is 0.028 / 0.18 / 0.11 of
+the displacement, against 0.11 / 0.056 / 7.6 without the compliance (by step 100 the
+modes-only body has been squeezed out from under the sphere, the full-space one has not).
 
 Each case covers a path through the step: pinned and free multi-domain bodies, a spin
 with explicit and with implicit fictitious forces, a full-space domain, contact (a body
@@ -29,6 +41,8 @@ import sys
 import numpy as np
 
 CHECKPOINTS = (10, 50, 100)
+#: Largest relative error accepted across machines (see above).
+TOLERANCE = 1e-8
 PATH = os.path.join(os.path.dirname(__file__), "data", "step_reference.npz")
 
 

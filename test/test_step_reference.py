@@ -10,7 +10,7 @@ def test_step_reproduces_reference_positions(name):
     recorded = np.load(ref.PATH)[name]
     x, rest = ref.run(name)
     assert np.abs(recorded - rest).max() > 1e-3          # the case moves the body
-    assert ref.relative_error(x, recorded, rest) <= 1e-10
+    assert ref.relative_error(x, recorded, rest) <= ref.TOLERANCE
 
 
 @pytest.mark.parametrize("name", ["cubature_nonuniform_free", "contact"])

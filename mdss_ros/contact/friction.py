@@ -515,7 +515,7 @@ def _positive(W, shift):
 
 
 def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_rounds=50, hint=None,
-                          lam_guess=None):
+                          lam_guess=None, compliance=None):
     """Multipliers and velocity correction of one linear solve with frictional contact.
 
     As unilateral.contact_correction, with three rows per contact: C (3m, n) in contact
@@ -527,7 +527,8 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     gap, so the answer is that of all rows.
 
     mu (m,) (effective_mu); hint (m,) bool; lam_guess (m, 3) a first guess (the last
-    Newton iteration's forces). Returns (lam (m, 3), correction (n,), info); info["w"]
+    Newton iteration's forces); compliance: a reduced body's residual contact compliance
+    on the 3m rows (as in unilateral.contact_correction), added to W. Returns (lam (m, 3), correction (n,), info); info["w"]
     (m, 3) is each contact's gap and slip after the correction.
     """
     n_rows, n = C.shape
@@ -545,7 +546,8 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         # No guess: the frictionless answer's contacts. Far fewer than the rows the free
         # step violates when a collider first meets a reduced body (9 of 121 for a pad on
         # a 30-mode block), whose rows are then strongly dependent and slow Newton down.
-        lam_n, _, _ = contact_correction(resolve, C[0::3], gn, regularize=regularize, tol=tol)
+        lam_n, _, _ = contact_correction(resolve, C[0::3], gn, regularize=regularize, tol=tol,
+                                         compliance=None if compliance is None else compliance.normal())
         hint = lam_n > 0
         lam_guess = np.zeros((m, 3))
         lam_guess[:, 0] = lam_n
@@ -558,6 +560,8 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     r = rows_of(work)
     Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(r)))).reshape(n, -1)
     Wd = np.asarray(C[r] @ Y)
+    if compliance is not None:
+        Wd = Wd + compliance.block(r, r)
     Wd = 0.5 * (Wd + Wd.T)
     shift = regularize * max(float(np.mean(np.diag(Wd))), 1e-300) if regularize > 0.0 else 0.0
     guess = None if lam_guess is None else lam_guess[work]
@@ -565,7 +569,10 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     for rounds in range(1, max_rounds + 1):
         lam_w, info = solve_coulomb(_positive(Wd, shift), g[r], mu[work], lam0=guess, tol=tol)
         corr = Y @ lam_w.ravel()
-        gap = C[0::3] @ corr + gn
+        w_all = C @ corr + g
+        if compliance is not None:
+            w_all += compliance.apply(r, lam_w.ravel())
+        gap = w_all[0::3]
         out = np.ones(m, dtype=bool)
         out[work] = False
         viol = np.flatnonzero(out & (gap < -tol * scale))
@@ -574,6 +581,10 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         r_new = rows_of(viol)
         Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(r_new)))).reshape(n, -1)
         Wd = np.block([[Wd, np.asarray(C[r] @ Y_new)], [np.asarray(C[r_new] @ Y), np.asarray(C[r_new] @ Y_new)]])
+        if compliance is not None:
+            both = np.concatenate([r, r_new])
+            Wd[:, r.size:] += compliance.block(both, r_new)
+            Wd[r.size:, :r.size] += compliance.block(r_new, r)
         Wd = 0.5 * (Wd + Wd.T)
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
@@ -581,7 +592,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         guess = np.vstack([lam_w, np.zeros((viol.size, 3))])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
-                       "w": (C @ corr + g).reshape(m, 3),
+                       "w": w_all.reshape(m, 3),
                        "active": int((lam[:, 0] > 0).sum()), "stick": int(info["stick"].sum()),
                        "slip": int(info["slip"].sum()), "newton": info["iterations"],
                        "unconverged": bool(viol.size) or info.get("unconverged", False)}

@@ -130,7 +130,7 @@ def _lawson_hanson(S, q, tol, max_iterations, done, start):
     return lam, {"iterations": it, "active": int(passive.sum()), "unconverged": True}
 
 
-def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None):
+def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None, compliance=None):
     """Multipliers and velocity correction of one linear solve with contact.
 
     The step dv of A dv = b is corrected to dv + Y lam, Y = A^-1 C^T, with lam >= 0,
@@ -151,6 +151,10 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     regularize: the diagonal shift of solve_lcp as a fraction of the mean diagonal of S
     over the first working set, then fixed for the following rounds.
 
+    compliance: optional residual compliance of the contact points (a reduced body's local
+    dent, reduced/residual_compliance.ContactCompliance): its block(a, b) joins S, so
+    w = (C Y + W_res) lam + g, and apply(b, lam) adds its share to every row's gap.
+
     resolve(B) solves A X = B for B (n, k); C (m, n) dense or scipy sparse; g (m,).
     Returns (lam (m,), correction (n,) = Y lam, info).
     """
@@ -165,6 +169,8 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
     Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(work)))).reshape(n, -1)
     S = np.asarray(C[work] @ Y)
+    if compliance is not None:
+        S = S + compliance.block(work, work)
     shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
     guess = np.ones(work.size, dtype=bool)
     info = {}
@@ -172,6 +178,8 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         lam_w, info = solve_lcp(S, g[work], tol=tol, shift=shift, active=guess)
         corr = Y @ lam_w
         w = C @ corr + g
+        if compliance is not None:
+            w += compliance.apply(work, lam_w)
         out = np.ones(m, dtype=bool)
         out[work] = False
         viol = np.flatnonzero(out & (w < -tol * scale))
@@ -181,6 +189,10 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(viol)))).reshape(n, -1)
         S = np.block([[S, np.asarray(C[work] @ Y_new)],
                       [np.asarray(C[viol] @ Y), np.asarray(C[viol] @ Y_new)]])
+        if compliance is not None:
+            both = np.concatenate([work, viol])
+            S[:, work.size:] += compliance.block(both, viol)
+            S[work.size:, :work.size] += compliance.block(viol, work)
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
         guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])

@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from ..rotations import cross
 from . import reconstruct
+from .residual_compliance import limit_dent
 
 
 class ContactRows:
@@ -35,7 +36,7 @@ class ContactRows:
         from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis, warm_start
         from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
-        x = self.positions_of(ids)
+        x = self.positions_of(ids)                  # with the last step's dent (residual compliance)
         rows, which, phi, normals = find_contacts(contact["colliders"], x, x, contact["margin"])
         # Sphere-face contacts enter as weighted copies of their three corners' rows.
         weights = np.ones(len(rows))
@@ -65,13 +66,20 @@ class ContactRows:
         starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         tangents = None
         if not rough:
-            C = self._rows_along(normals[:, None, :] * weights[:, None, None], verts, xv, starts, dt)
+            dirs = normals[:, None, :] * weights[:, None, None]
+            C = self._rows_along(dirs, verts, xv, starts, dt)
         else:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
             dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
             C3 = self._rows_along(dirs, verts, xv, starts, dt)
             C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
+        # The residual compliance's rows (residual_compliance.py): the same directions on
+        # the candidate vertices' dent, in their domains' rest axes.
+        G = None
+        if self.compliance is not None:
+            row_of = np.searchsorted(starts, np.arange(len(verts)), side="right") - 1
+            G = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else np.linalg.norm(C, axis=1))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
@@ -86,6 +94,9 @@ class ContactRows:
             if tangents is not None:
                 tangents = tangents[movable]
                 C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
+            if G is not None:
+                r = 1 if tangents is None else 3
+                G = G[(r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel()]
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
@@ -96,6 +107,16 @@ class ContactRows:
             self._contact_rigid = dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
+        self._contact_compliance = None if G is None or G.nnz == 0 else self.compliance.contact(G)
+        self._dent_cap = contact["margin"]
+        # A contact point is at its reduced position plus its dent C_res G^T lam, and the gaps
+        # and normals above are those of that point under the last step's forces; over the
+        # step it moves by C Q' and by the change of its dent. The new dent enters through
+        # the compliance in the solve, so the last one comes off every row here.
+        dent_shift = None
+        if self._contact_compliance is not None:
+            dent_shift = (G @ self._dent.ravel()).reshape(len(verts), -1)
+            phi_eff -= dent_shift[:, 0]
         fric = None
         if rough:
             n_col = len(contact["colliders"])
@@ -109,6 +130,8 @@ class ContactRows:
             if gm is not None:
                 rigid3[:, 1:] = dt * np.einsum("lij,lj->li", tangents, rigid_v)
                 g3[:, 1:] += rigid3[:, 1:]
+            if dent_shift is not None:
+                g3[:, 1:] -= dent_shift[:, 1:]
             fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
         return verts, C, phi_eff, normals, which, fric
 
@@ -193,14 +216,23 @@ class ContactRows:
             hint = np.isin(keys, np.concatenate(history)) if history else None
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
         if friction is None:
-            lam, corr, info = contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint)
-            active = lam > 0
+            def solve(compliance):
+                return contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint,
+                                          compliance=compliance)
         else:
             C3, g3, mu = friction[:3]
             guess = self._contact_lam if same_step else friction[5]
-            lam, corr, info = frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu, regularize=1e-9,
-                                                    hint=hint if guess is None else None, lam_guess=guess)
-            active = lam[:, 0] > 0
+
+            def solve(compliance):
+                return frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu, regularize=1e-9,
+                                             hint=hint if guess is None else None, lam_guess=guess,
+                                             compliance=compliance)
+        if self._contact_compliance is None:
+            lam, corr, info = solve(None)
+        else:
+            (lam, corr, info), self._contact_compliance = limit_dent(solve, self._contact_compliance.scaled(1.0),
+                                                                    self._dent_cap)
+        active = lam > 0 if friction is None else lam[:, 0] > 0
         self._contact_info = info
         self._contact_history = (history[:-1] if same_step else history[-1:]) + [keys[active]]
         self._contact_lam, self._contact_rows_seen = lam, rows

@@ -9,6 +9,7 @@ The method's parts live in modules named after them, mixed into ReducedModel:
     unified_system.py      Mgen, A = Mgen + dt Dgen + dt^2 K, its solve; the two-step foil
     fictitious.py          fictitious forces; the free body's mean rigid motion
     contact_rows.py        contact rows C = dt n^T J and the contact correction
+                           (with residual_compliance.py: the dent the modes cannot make)
     guard_terms.py         the stability guard's measure, energy projection, untangle
 
 and the kernels they call in layout, frames, sampled_forces, coupling, block_cholesky,
@@ -25,7 +26,7 @@ from ..fem.assembly import stiffness_pattern
 from ..fem.elements import tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import SparseSolver
-from ..precompute import PrecomputeCache, bases_cache_key, cubature_cache_key
+from ..precompute import PrecomputeCache, bases_cache_key, compliance_cache_key, cubature_cache_key
 from ..rotations import cross
 from . import reconstruct
 from .block_cholesky import BlockCholesky
@@ -37,6 +38,7 @@ from .generalised_forces import GeneralisedForces
 from .guard_terms import GuardTerms
 from .frames import FrameState
 from .layout import DomainLayout
+from .residual_compliance import ResidualCompliance, build_residual_compliance
 from .sampled_forces import StackedSamples
 from .step import Step
 from .unified_system import UnifiedSystem
@@ -62,7 +64,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
     kind = "reduced"
     can_untangle = True
 
-    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None):
+    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None, contact_vertices=None):
         from .partition import build_partition, domain_elimination_order, domain_labels
         t_start = time.perf_counter()
         say = progress or (lambda msg: None)
@@ -201,11 +203,45 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         self.order = domain_elimination_order(len(self.subspace), self._subspace_edges())
         self.block_solver = BlockCholesky(sizes, self._subspace_edges(), self.order) if self.F == 0 else None
         self.sparse_solver = SparseSolver(solver) if self.F > 0 else None
+        self.compliance = self._build_compliance(contact_vertices, say)
         self.reset()
         self.samples = None             # StackedSamples once cubature exists (_stack_samples)
         self.cubature_info = self._build_cubature(cfg.get("cubature") or {}, say)
         self._stack_samples()
         self.build_seconds = time.perf_counter() - t_start
+
+    def _build_compliance(self, candidates, say):
+        """The residual contact compliance on the candidate vertices (residual_compliance.py),
+        from the cache when its inputs are unchanged; None without candidates, or when
+        full-space domains make n_gen large (contact on their vertices is exact already)."""
+        self.compliance_note = None
+        if candidates is None or len(candidates) == 0:
+            return None
+        if self.F:
+            self.compliance_note = "not built: the model has full-space domains, where contact is exact"
+            return None
+        candidates = np.asarray(candidates, dtype=np.int64)
+        key = compliance_cache_key(self.bases_key, candidates)
+        hit = self.cache.load("compliance", key)
+        if hit is not None:
+            arrays, meta = hit
+            say(f"cache: residual compliance loaded from {self.cache.path('compliance', key)}")
+            index = np.full(len(self.body.vertices), -1, dtype=np.int64)
+            index[candidates] = np.arange(len(candidates))
+            comp = ResidualCompliance(vertices=candidates, domain=arrays["domain"], C=arrays["C"], index=index,
+                                      info=dict(meta["info"]))
+        else:
+            t0 = time.perf_counter()
+            comp = build_residual_compliance(self.body, self.layout, self.n_gen, self.vertex_mass, candidates,
+                                             progress=say)
+            comp.info["seconds"] = time.perf_counter() - t0
+            self.cache.save("compliance", key, {"domain": comp.domain, "C": comp.C}, {"info": comp.info})
+        X = self.body.vertices[candidates]
+        self.compliance_note = (f"{comp.n} surface vertices nearest the colliders' scene paths "
+                                f"(box {np.ptp(X, axis=0).round(4).tolist()} m), {comp.info['megabytes']:.1f} MB; "
+                                f"median residual/full compliance {comp.info['diagonal_ratio']:.2f}")
+        say(f"residual compliance: {self.compliance_note}")
+        return comp
 
     def _build_cubature(self, ccfg, say):
         """Training poses and per-domain cubature when model.cubature.samples > 0."""
@@ -419,6 +455,11 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         # The contact LCP's warm start (_contact_solve): part of the state, so a rolled
         # back or replayed step repeats bit for bit.
         self._contact_history, self._contact_rows_seen, self._contact_lam = [], None, None
+        self._contact_compliance = None
+        # Each candidate's dent (n_c, 3) in its domain's rest axes under the last step's
+        # contact forces (residual_compliance.py): an output of the contact, kept as state
+        # because the next step's slip is measured from it.
+        self._dent = np.zeros((self.compliance.n if self.compliance is not None else 0, 3))
         self._start_eval = None         # the evaluation at the current state (_start_evaluation)
         self._positions_kept = []       # positions_of at the current state, two ids arrays
 
@@ -441,7 +482,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                 "frames": self.frames.copy(), "x_full": self._full_rows(self.x_full),
                 "v_full": self._full_rows(self.v_full),
                 "last": dict(self.last), "contact": self.contact, "stats": dict(self.stats),
-                "contact_history": list(self._contact_history)}
+                "contact_history": list(self._contact_history), "dent": self._dent}
 
     def set_state(self, state):
         """Restore a get_state() snapshot."""
@@ -451,6 +492,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         self.x_full, self.v_full = self._full_rows(state["x_full"]), self._full_rows(state["v_full"])
         self.last, self.contact, self.stats = dict(state["last"]), state["contact"], dict(state["stats"])
         self._contact_history, self._contact_rows_seen = list(state.get("contact_history", [])), None
+        self._dent = state["dent"]
 
     @property
     def n_dofs(self):
@@ -488,14 +530,27 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         return out.reshape(-1, 3)
 
     # ------------------------------------------------------------------ positions
-    def positions_of(self, ids, q=None, frames=None, x_full=None):
-        """World positions (len(ids), 3) of the given global vertex ids (reconstruct.py).
+    def positions_of(self, ids, q=None, frames=None, x_full=None, dent=True):
+        """World positions (len(ids), 3) of the given global vertex ids (reconstruct.py),
+        with the residual compliance's dent at the current state (dent=False: without it,
+        as the contact search measures gaps).
 
         At the current state the result is kept, read-only, for the same ids array: the
         surface a step's contact search reads at its start is the one the last step's
         output read at its end (hammock: one of its two surface passes a step). The state
         is compared by value (q and the frames are small, and tests write them in place);
         a model with full-space domains, whose state holds every vertex, is not kept."""
+        x = self._reduced_positions(ids, q, frames, x_full)
+        if dent and q is None and frames is None and self._dent.any():
+            k = self.compliance.index[ids]
+            sel = np.flatnonzero(k >= 0)
+            if sel.size:
+                x = x.copy()
+                R = self.frames.R[self.compliance.domain[k[sel]]]
+                x[sel] += np.einsum("kij,kj->ki", R, self._dent[k[sel]])
+        return x
+
+    def _reduced_positions(self, ids, q, frames, x_full):
         if q is not None or frames is not None or x_full is not None or self.F or len(ids) < 256:
             # A few loaded vertices cost nothing to rebuild, and kept they would push the
             # surface out of the two entries.
@@ -611,6 +666,12 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                                              if self.unsymmetric else ""))
         else:
             lines.append(f"solver: sparse {self.sparse_solver.backend} on the joint subspace + full-space system")
+        if self.compliance_note is not None:
+            lines.append(f"contact: residual compliance (the local dent the modes cannot make, "
+                         f"model.contact_compliance): {self.compliance_note}")
+        elif self.cfg.get("contact_compliance", 0) == 0:
+            lines.append("contact: no residual compliance (model.contact_compliance: 0): the modes alone answer "
+                         "a collider, too stiff for a local dent")
         return lines
 
     def cut_elements(self, tet_ids):

@@ -170,9 +170,12 @@ class Step:
             self.x_full, self.v_full = x_full, v_full
         self.contact = None
         contact_work = 0.0
+        self._dent = np.zeros_like(self._dent)
         if contact_rows is not None:
             verts, _, _, normals, which, friction = contact_rows
             lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
+            if self._contact_compliance is not None:
+                self._dent = self._contact_compliance.dent(lam.ravel())
             lam_n = lam if lam.ndim == 1 else lam[:, 0]
             pts = self.positions_of(verts)
             depth = np.zeros(len(verts))

@@ -1,0 +1,181 @@
+"""The residual contact compliance (mdss_ros/reduced/residual_compliance.py).
+
+Kernel checks against finite differences and dense linear algebra on small bodies, and
+the contact force of a pressed block against full-space FEM."""
+import numpy as np
+import pytest
+
+from mdss_ros import Simulator
+from mdss_ros.fem.force_model import FEMForceModel
+from mdss_ros.reduced.modal_basis import rigid_modes
+from mdss_ros.reduced.residual_compliance import build_residual_compliance, kinematics_at_rest
+from mdss_ros.rotations import exp_so3_batch
+
+
+def _block(pins, colliders=None, **model):
+    scene = {"name": "block",
+             "body": {"mesh": {"generator": "box", "size": [0.08, 0.08, 0.04], "cell": 0.01,
+                               "origin": [-0.04, -0.04, 0.0]},
+                      "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000},
+                      "damping": {"alpha": 2.0, "beta": 0.0}},
+             "colliders": colliders or {"ball": {"shape": "sphere", "radius": 0.02, "position": [0, 0, 0.07]}},
+             "model": dict({"kind": "reduced", "domains": {"count": 2}, "modes": 8, "cubature": {"samples": 0}},
+                           **model)}
+    if pins:
+        scene["pins"] = [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}]
+    return scene
+
+
+@pytest.mark.parametrize("pinned", [True, False])
+def test_kinematics_at_rest_are_the_derivatives_of_the_positions(pinned):
+    """J's columns: central differences of the reconstructed positions in each modal
+    coordinate, frame translation and frame rotation (exp of a small angle)."""
+    sim = Simulator(_block(pinned))
+    m = sim.model
+    L = m.layout
+    J = kinematics_at_rest(L, m.n_gen, len(m.body.vertices)).toarray()
+    ids = np.arange(len(m.body.vertices))
+    eps = 1e-6
+    for d in range(L.D):
+        for j in range(L.r[d]):
+            q = m.q.copy()
+            q[d, j] = eps
+            xp = m.positions_of(ids, q=q)
+            q[d, j] = -eps
+            xm = m.positions_of(ids, q=q)
+            np.testing.assert_allclose((xp - xm).ravel() / (2 * eps), J[:, L.q_index[d, j]], atol=1e-7)
+    for k, d in enumerate(L.movers):
+        for b in range(3):
+            for which, cols in (("c", L.lin_index), ("R", L.ang_index)):
+                out = []
+                for s in (eps, -eps):
+                    frames = m.frames.copy()
+                    if which == "c":
+                        frames.c[d, b] += s
+                    else:
+                        frames.R[d] = exp_so3_batch(s * np.eye(3)[b][None])[0] @ frames.R[d]
+                    out.append(m.positions_of(ids, frames=frames))
+                np.testing.assert_allclose((out[0] - out[1]).ravel() / (2 * eps), J[:, cols[k, b]], atol=1e-7)
+    assert pinned or len(L.movers) > 0
+
+
+@pytest.mark.parametrize("pinned", [True, False])
+def test_residual_compliance_is_full_minus_reduced_static_compliance(pinned):
+    """C_res equals the dense formula E^T (K^+ - J (J^T K J)^+ J^T) P E with both answers
+    taken M-orthogonal to the rigid modes (a floating body: inertia relief), and it is
+    symmetric positive semi-definite."""
+    sim = Simulator(_block(pinned))
+    m = sim.model
+    body = m.body
+    cand = m.compliance.vertices[:12]
+    comp = build_residual_compliance(body, m.layout, m.n_gen, m.vertex_mass, cand)
+    fem = FEMForceModel(body.vertices, body.tets, body.material, pinned=body.pinned)
+    K = fem.pattern.matrix(fem.tangent(body.vertices)[2]).toarray()
+    free = np.flatnonzero(fem.pattern.free_dof >= 0)
+    J = kinematics_at_rest(m.layout, m.n_gen, len(body.vertices)).toarray()[free]
+    mass = np.repeat(m.vertex_mass, 3)[free]
+    E = np.zeros((len(free), 3 * len(cand)))
+    E[fem.pattern.free_dof[(3 * cand[:, None] + np.arange(3)).ravel()], np.arange(3 * len(cand))] = 1.0
+    if pinned:
+        P = np.eye(len(free))
+        proj = np.eye(len(free))
+    else:
+        R = rigid_modes(body.vertices, m.vertex_mass)
+        P = np.eye(len(free)) - (mass[:, None] * R) @ R.T
+        proj = np.eye(len(free)) - R @ (R.T * mass)
+    u = proj @ np.linalg.pinv(K, rcond=1e-10, hermitian=True) @ P @ E
+    u_r = proj @ J @ np.linalg.pinv(J.T @ K @ J, rcond=1e-10, hermitian=True) @ J.T @ P @ E
+    expected = E.T @ (u - u_r)
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(comp.C, 0.5 * (expected + expected.T), atol=1e-8 * scale)
+    assert np.linalg.eigvalsh(comp.C).min() > -1e-10 * scale
+    assert comp.info["clipped"] < 1e-8
+    # The modes carry some of the compliance, never more than all of it.
+    assert 0.0 < comp.info["diagonal_ratio"] < 1.0
+
+
+def _press(kind, depth, **model):
+    """Reaction (N) on a flat punch (a box 3 x 3 cm) held `depth` into the top of a
+    bottom-pinned block after a slow press; the simulator. A punch presses nine vertices
+    (a sphere on this coarse mesh would touch one: a point load, whose answer depends on
+    which faces it meets)."""
+    scene = _block(True, {"ball": {"shape": "box", "half_extents": [0.015, 0.015, 0.02],
+                                   "position": [0, 0, 0.07]}}, kind=kind, **model)
+    scene["model"]["integrator"] = {"dt": 0.01, "newton_iterations": 2}
+    # No gravity: the modes' own error under the body's weight (a sag of 0.1 mm here, the
+    # size of the press) is not the contact's.
+    scene["gravity"] = [0.0, 0.0, 0.0]
+    sim = Simulator(scene)
+    top = 0.04
+    for k in range(80):
+        sim.set_collider_pose("ball", (0.0, 0.0, top + 0.02 - depth * min(1.0, (k + 1) / 50)))
+        sim.step()
+    return float(sim.collider_wrench("ball")[2]), sim
+
+
+@pytest.mark.claims
+def test_residual_compliance_brings_a_shallow_press_to_the_full_fem_force():
+    """A 0.3 mm press (linear regime): with the residual compliance the reduced block
+    (2 domains x 8 modes) reads the full-space FEM's force within 3 %; its modes alone read
+    it several times too high. The dented vertices do not enter the punch."""
+    f_full, _ = _press("full", 3e-4)
+    f_res, sim = _press("reduced", 3e-4)
+    f_modes, _ = _press("reduced", 3e-4, contact_compliance=0)
+    assert f_full > 0
+    assert abs(f_res / f_full - 1.0) < 0.03, (f_full, f_res, f_modes)
+    assert f_modes / f_full > 2.0, (f_full, f_modes)
+    x = sim.vertex_positions()
+    phi = sim.colliders["ball"].signed_distance(x)[0]
+    assert phi.min() > -2e-6                    # the dent follows the sphere (linearised gap)
+    undented = sim.model.positions_of(np.arange(len(x)), dent=False)
+    assert sim.colliders["ball"].signed_distance(undented)[0].min() < -1e-4   # the modes alone would enter it
+
+
+def test_a_collider_driven_deep_in_one_step_dents_no_more_than_the_margin():
+    """The punch driven 15 mm into the 4 cm block in one step: the residual compliance alone
+    would take 11.8 mm of it as a dent; limit_dent caps every vertex's dent at the contact
+    margin (a mean surface edge, 1.1 cm here) and the modes carry the rest."""
+    scene = _block(True, {"ball": {"shape": "box", "half_extents": [0.015, 0.015, 0.02],
+                                   "position": [0, 0, 0.061]}})
+    sim = Simulator(scene)
+    sim.step()
+    sim.set_collider_pose("ball", (0.0, 0.0, 0.045))
+    sim.step()
+    margin = sim._contact_spec()["margin"]
+    dent = np.linalg.norm(sim.model._dent, axis=1).max()
+    assert 0.5 * margin < dent <= margin * (1 + 1e-9), (dent, margin)
+    assert sim.model._contact_compliance.scale < 1.0
+    assert sim.collider_wrench("ball")[2] > 0
+
+
+def test_the_dent_is_state_a_snapshot_restores():
+    """get_state / set_state carry the dent: a rolled-back step repeats bit for bit."""
+    _, sim = _press("reduced", 3e-4)
+    state = sim.model.get_state()
+    x0 = sim.vertex_positions().copy()
+    sim.step()
+    x1 = sim.vertex_positions().copy()
+    sim.model.set_state(state)
+    np.testing.assert_array_equal(sim.vertex_positions(), x0)
+    sim.step()
+    np.testing.assert_array_equal(sim.vertex_positions(), x1)
+
+
+def test_candidates_are_the_surface_vertices_nearest_the_collider_paths():
+    """The set follows the timeline's poses, holds no pinned vertex, and is capped."""
+    scene = _block(True, contact_compliance=30)
+    scene["timeline"] = [{"t": 0.1, "topic": "collider_pose", "name": "ball", "position": [0.03, 0.0, 0.055]}]
+    sim = Simulator(scene)
+    comp = sim.model.compliance
+    assert comp.n == 30
+    X = sim.body.vertices[comp.vertices]
+    assert not np.isin(comp.vertices, sim.body.pinned).any()
+    assert np.all(X[:, 2] >= 0.03 - 1e-9)                 # the top and its edge, where the ball goes
+    assert X[:, 0].max() > 0.02                          # ... along its path to x = 3 cm
+    assert any("residual compliance" in line for line in sim.explain())
+
+
+def test_no_colliders_builds_no_compliance():
+    scene = _block(True)
+    scene["colliders"] = {}
+    assert Simulator(scene).model.compliance is None
