@@ -132,16 +132,12 @@ def test_triangle_cull_keeps_every_face_the_exact_test_finds(shape):
     assert found > 3
 
 
-@pytest.mark.parametrize("compliance", [0, 800])
-def test_resting_reduced_block_solves_only_for_the_contacts_that_carry_it(compliance):
+def test_resting_reduced_block_solves_only_for_the_contacts_that_carry_it():
     """Warm start across steps: once a reduced block rests on the floor, the LCP's working
-    set is the set of load-carrying contacts of the last step, not every row the
-    unconstrained step pushes through the floor; the floor still carries the weight.
-
-    Its modes alone (contact_compliance 0) are too stiff to dent, so a few bottom vertices
-    carry the block (13 of 81 measured). With the residual compliance the bottom dents as
-    a full-space block's does and every bottom vertex carries its share; the working set
-    is still exactly those, not the 113 candidate rows (the side vertices near the floor)."""
+    set is the set of load-carrying contacts of the last step, not every bottom vertex the
+    unconstrained step pushes through the floor; the floor still carries the weight. A
+    plane gets no residual contact compliance (model_build.contact_candidates), so the
+    block's modes carry it on a few vertices (13 of 81 measured)."""
     from mdss_ros import Simulator
     scene = {"name": "block",
              "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.025,
@@ -150,18 +146,16 @@ def test_resting_reduced_block_solves_only_for_the_contacts_that_carry_it(compli
                       "damping": {"alpha": 5.0, "beta": 0.0}},
              "colliders": {"floor": {"shape": "plane"}},
              "model": {"kind": "reduced", "domains": {"count": 2}, "modes": 10, "cubature": {"samples": 0},
-                       "contact_compliance": compliance, "integrator": {"dt": 0.01, "newton_iterations": 2}}}
+                       "integrator": {"dt": 0.01, "newton_iterations": 2}}}
     sim = Simulator(scene)
+    assert sim.model.compliance is None
+    assert any("planes only" in line for line in sim.explain())
     bottom = int((sim.rest_positions()[:, 2] < 1e-9).sum())
     sim.step(60)
     st = sim.stats()
     active = len(sim.contacts())
-    if compliance:
-        assert active == bottom
-        assert st["contact_working_set"] == active < st["contact_rows"]
-    else:
-        assert 0 < active < bottom
-        assert st["contact_working_set"] == active < st["contact_rows"] // 4
+    assert 0 < active < bottom
+    assert st["contact_working_set"] == active < st["contact_rows"] // 4
     weight = sim.model.vertex_mass.sum() * 9.81
     assert abs(-sim.collider_wrench("floor")[2] - weight) < 0.02 * weight
 

@@ -297,11 +297,7 @@ def test_a_free_body_lifted_off_a_floor_creates_no_energy():
     rebalance must not undo the floor's torque: when it restored L + dt tau_loads in
     contact steps it turned the bar by up to 0.3 rad/s a step, the energy created reached
     0.099 of the step's energy scale (the guard's bound is 0.1) and the tip rose 0.56 m
-    instead of 0.33 m. Three Newton iterations a step: the bound is backward Euler's, which
-    holds for a converged step. With one iteration the step where the bar leaves the floor
-    is a linearised one (residual ratio 1.0) and created 3.2e-4 of the scale with the modes
-    alone, 1.3e-3 with the residual contact compliance (its five contacts unload at once);
-    with three, -1.0e-4 (none created)."""
+    instead of 0.33 m. Measured now: at most 2.4e-4 of the scale."""
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).parent))
@@ -309,7 +305,6 @@ def test_a_free_body_lifted_off_a_floor_creates_no_energy():
     sc = _scene(pins=False, domains={"count": 3}, modes=6,
                 colliders={"floor": {"shape": "plane", "position": [0, 0, -0.0501]}})
     sc["model"]["guard"] = {"enabled": False}
-    sc["model"].setdefault("integrator", {})["newton_iterations"] = 3
     sim = Simulator(sc)
     m, g = sim.model, sim.gravity
     sim.step(30)                                       # fallen 5 cm, resting on the floor

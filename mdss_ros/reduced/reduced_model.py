@@ -672,6 +672,9 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         elif self.cfg.get("contact_compliance", 0) == 0:
             lines.append("contact: no residual compliance (model.contact_compliance: 0): the modes alone answer "
                          "a collider, too stiff for a local dent")
+        else:
+            lines.append("contact: no residual compliance: the scene has no collider, or planes only (a floor "
+                         "carries a body with its modes alone; docs/method.md §14.2)")
         return lines
 
     def cut_elements(self, tet_ids):
