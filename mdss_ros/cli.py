@@ -412,7 +412,7 @@ def cmd_stability(args):
         if bad:
             raise SystemExit(f"mdss stability: {what}: unknown {bad} (allowed: {', '.join(allowed)})")
     report = run_study(args.out, quick=args.quick, kinds=kinds, materials=materials,
-                       log=lambda msg: print(msg, flush=True))
+                       log=lambda msg: print(msg, flush=True), contact_only=args.contact_only)
     return 0 if not any(c.get("failed") for c in report["counts"].values()) else 1
 
 
@@ -537,6 +537,8 @@ def main(argv=None):
     p.add_argument("--kinds", help="comma-separated model kinds of full,reduced,meshless (default: full,reduced; "
                                    "the meshless model runs with one material, its own law)")
     p.add_argument("--materials", help="comma-separated materials (default: stvk,corotated,neohookean)")
+    p.add_argument("--contact-only", action="store_true", help="only the contact cells (friction x sphere speed "
+                                                              "x stiffness)")
     p.set_defaults(func=cmd_stability)
 
     p = sub.add_parser("_bench_fem_one", help=argparse.SUPPRESS)

@@ -70,8 +70,10 @@ def test_verify_hertz_quick_report(tmp_path):
     rows = data["rows"]
     full = sorted((r for r in rows if r["kind"] == "full"), key=lambda r: r["dofs"])
     reduced = [r for r in rows if r["kind"] == "reduced"]
+    residual = [r for r in rows if r["kind"] == "residual"]
     assert len(full) == len(hz.QUICK["levels"]) and len(reduced) == len(hz.QUICK["reduced_levels"])
-    assert len(rows) == len(full) + len(reduced) and "meshless_vs_full" not in data
+    assert len(residual) == len(hz.QUICK["residual_levels"])
+    assert len(rows) == len(full) + len(reduced) + len(residual) and "meshless_vs_full" not in data
     for r in rows:
         assert len(r["points"]) == len(hz.QUICK["force_fractions"])
         for p in r["points"]:
@@ -94,6 +96,13 @@ def test_verify_hertz_quick_report(tmp_path):
     assert red["dofs"] < same["dofs"] / 3
     for p_red, p_full in zip(red["points"], same["points"]):
         assert abs(p_red["rel_error"] - p_full["rel_error"]) < 0.03
+    # The residual row: the whole block a subspace (its DOFs are its modes, no full-space
+    # zone); the residual contact compliance gives the dent, and the same bound holds.
+    res = residual[0]
+    same = next(r for r in full if r["level"] == res["level"])
+    assert res["dofs"] == hz.HERTZ["reduced_modes"] and res["full_space_dofs"] == 0
+    for p_res, p_full in zip(res["points"], same["points"]):
+        assert abs(p_res["rel_error"] - p_full["rel_error"]) < 0.03
     for name in data["plots"]:
         assert (tmp_path / name).stat().st_size > 5000
 
@@ -102,7 +111,7 @@ def test_verify_hertz_quick_report(tmp_path):
 # A 0.2 m block (567 nodes at a/h = 1) instead of the 2 m one: the plumbing of the meshless
 # rows in seconds. Its bottom is 10 contact radii down, so the numbers are not Hertz's.
 TINY = {"block": 0.2, "cell_coarse": 0.05, "force_fractions": [0.4, 1.0], "timing_steps": 2,
-        "force_tol": 0.02, "levels": [1], "reduced_levels": [], "meshless_levels": [1]}
+        "force_tol": 0.02, "levels": [1], "reduced_levels": [], "residual_levels": [], "meshless_levels": [1]}
 
 
 def test_meshless_hertz_scene_has_isotropic_graded_nodes_and_the_static_step():
@@ -228,7 +237,7 @@ def test_verify_hertz_quick_meshless_rows(tmp_path):
     on its isotropically graded BCC nodes it is measured and checked like the FEM rows."""
     from mdss_ros.cli import main
     assert main(["verify", "hertz", "--out", str(tmp_path), "--quick", "--set", "levels=[2]",
-                 "--set", "reduced_levels=[]"]) == 0
+                 "--set", "reduced_levels=[]", "--set", "residual_levels=[]"]) == 0
     data = json.loads((tmp_path / "hertz.json").read_text())
     rows = {r["kind"]: r for r in data["rows"]}
     assert set(rows) == {"full", "meshless"} and rows["meshless"]["level"] == hz.QUICK["meshless_levels"][0]

@@ -142,3 +142,13 @@ def test_meshless_base_and_contact_cells_run_and_are_classified(tmp_path):
                          "energy_bound": st.ENERGY_BOUND, "contact": {"cells": 1}},
               "rows": rows}
     assert not check_report(report)
+
+
+def test_contact_only_runs_the_contact_cells_alone(tmp_path):
+    """`mdss stability --contact-only`: the contact cells and nothing else (quick: two)."""
+    from mdss_ros.verify import stability_study as st
+    report = st.run_study(tmp_path, quick=True, kinds=["reduced"], materials=["stvk"], log=lambda msg: None,
+                          contact_only=True)
+    assert report["design"]["cells"] == len(st.contact_design(quick=True)) == len(report["rows"]) == 2
+    assert all("mu" in r for r in report["rows"])
+    assert sum(report["counts"]["reduced"].values()) == 2

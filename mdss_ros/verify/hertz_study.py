@@ -35,6 +35,10 @@ domain (docs/method.md §12) and the rest of the block one pinned subspace domai
 (`reduced_modes` linear modes). Its far field is what the subspace adds to the error: at
 a/h = 2 a zone of 3 a_ref gave -12 %, 6 a_ref -8.6 %, 10 a_ref -7.3 % (30 modes) and -6.7 %
 (80 modes), against -5.5 % for full-space FEM on the same mesh (0.25 F_max).
+The residual rows drop the full-space zone: the whole block is one pinned subspace domain
+of `reduced_modes` linear modes, and the residual contact compliance (docs/method.md §14.2)
+on the `residual_vertices` surface vertices nearest the sphere gives the dent the modes
+cannot make; their DOFs are the modes alone.
 The meshless model (`model.kind: meshless`, docs/method.md §19) at the meshless levels: its
 nodes are the vertices of an isotropically graded unstructured mesh of the same block
 (`meshless_mesh`: nested BCC lattices of cube edge h = a_ref / level round the contact,
@@ -77,6 +81,11 @@ HERTZ = {
     "fixed_force_fraction": 0.6,   # Fig. 5: indentation at this fraction of the largest force
     "levels": [1.5, 2, 3, 4],      # a_ref / h of the full-space meshes
     "reduced_levels": [2, 3, 4],   # a_ref / h of the reduced models (4: first within 5 % at every force)
+    # a_ref / h of the reduced models without a full-space zone: one pinned subspace domain
+    # of reduced_modes modes, with the residual contact compliance (docs/method.md §14.2)
+    # on the residual_vertices surface vertices nearest the sphere.
+    "residual_levels": [2, 3, 4],
+    "residual_vertices": 400,
     # a_ref / h of the meshless models: 4,784, 8,389, 10,924 nodes of meshless_mesh (14.0K,
     # 24.8K, 32.6K DOFs). Force-controlled at the fixed force: +14.3 %, +4.7 %, +3.0 %
     # (docs/method.md §19.8); a/h = 3 took 4 minutes under load.
@@ -103,9 +112,9 @@ HERTZ = {
     # (reaction oscillating by +-4 % at a / h = 1.3, measured while building this study).
     "face_contacts": False,
 }
-QUICK = {"levels": [2, 3], "reduced_levels": [2], "meshless_levels": [2], "force_fractions": [0.4, 1.0],
+QUICK = {"levels": [2, 3], "reduced_levels": [2], "residual_levels": [2], "meshless_levels": [2], "force_fractions": [0.4, 1.0],
          "timing_steps": 2}
-KINDS = ("full", "reduced", "meshless")
+KINDS = ("full", "reduced", "residual", "meshless")
 
 # Static solve by the product's own step (see the module docstring).
 STATIC = {"scheme": "one_step", "dt": 10.0, "newton_iterations": 10, "tolerance": 1e-6}
@@ -138,7 +147,8 @@ def indentation_errors(forces, depths, radius, e_star):
 # ---------------------------------------------------------------------- scenes
 def hertz_scene(cfg, level, kind="full"):
     """Scene dict of the block and sphere at resolution level a_ref / h = level; kind 'full',
-    'reduced' (contact zone full space) or 'meshless' (nodes = the mesh's vertices,
+    'reduced' (contact zone full space), 'residual' (one subspace domain with the residual
+    contact compliance) or 'meshless' (nodes = the mesh's vertices,
     cfg["meshless"] as its model.meshless settings). The sphere starts just touching the top."""
     L, a, R = float(cfg["block"]), float(cfg["a_ref"]), float(cfg["sphere_radius"])
     if not level > 0:
@@ -154,7 +164,7 @@ def hertz_scene(cfg, level, kind="full"):
         mesh = {"file": str(meshless_mesh_file(cfg, level))}
     elif kind == "meshless" and nodes != "graded_block":
         raise ReportError(f"hertz: meshless_nodes must be 'graded_bcc' or 'graded_block', got {nodes!r}")
-    model = {"kind": kind, "integrator": dict(STATIC)}
+    model = {"kind": "reduced" if kind == "residual" else kind, "integrator": dict(STATIC)}
     if kind == "meshless":
         # Same backward Euler as the full model; the one-step/two-step scheme is the
         # reduced model's and means nothing here.
@@ -168,7 +178,10 @@ def hertz_scene(cfg, level, kind="full"):
                       # Small strain: linear modes span the far field's response; modal
                       # derivatives (large-deformation directions) would only cost build time.
                       "basis": {"derivatives": False},
-                      "cubature": {"samples": 0}})
+                      "cubature": {"samples": 0}, "contact_compliance": 0})
+    if kind == "residual":
+        model.update({"domains": {"count": 1}, "modes": int(cfg["reduced_modes"]), "basis": {"derivatives": False},
+                      "cubature": {"samples": 0}, "contact_compliance": int(cfg["residual_vertices"])})
     return {"name": f"hertz_{kind}_{level:g}",
             "body": {"mesh": mesh, "material": dict(cfg["material"])},
             "pins": [{"box": [[-L, -L, -L - 1e-6 * L], [L, L, -L + 1e-6 * L]]}],
@@ -337,7 +350,7 @@ def run_model(cfg, kind, level, log):
                             "depth_hertz": d_h_ref, "depth_hertz_target": float(hertz_indentation(F_ref, R, e_star)),
                             "rel_error": (fixed["depth"] - d_h_ref) / d_h_ref, "rounds": fixed["rounds"]},
             "step_ms": step_ms, "static_step_ms": float(np.median(static_ms)), "sweep_s": sweep_s,
-            "full_space_dofs": int(sim.model.F) if kind == "reduced" else int(st["dofs"]), "guard": guard}
+            "full_space_dofs": int(sim.model.F) if kind in ("reduced", "residual") else int(st["dofs"]), "guard": guard}
 
 
 # ---------------------------------------------------------------------- report
@@ -414,6 +427,7 @@ def hertz_report(out, quick=False, overrides=None, log=None):
         f"{', '.join(f'{f * F_max:.3g}' for f in cfg['force_fractions'])} N (contact radius "
         f"{1e3 * cfg['a_ref'] * min(cfg['force_fractions']) ** (1 / 3):.3g}-{1e3 * cfg['a_ref']:.3g} mm)")
     runs = ([("full", lv) for lv in cfg["levels"]] + [("reduced", lv) for lv in cfg["reduced_levels"]]
+            + [("residual", lv) for lv in cfg["residual_levels"]]
             + [("meshless", lv) for lv in cfg["meshless_levels"]])
     rows = []
     for k, (kind, level) in enumerate(runs):
@@ -425,7 +439,7 @@ def hertz_report(out, quick=False, overrides=None, log=None):
     notes = [f"full model at its finest resolution (a/h = {finest['level']:g}, {finest['dofs']} DOFs): "
              f"L2 error {100 * finest['l2_error']:.2f} %, max {100 * finest['max_error']:.2f} % "
              f"(target 3 %: {'met' if finest['max_error'] <= 0.03 else 'NOT met'})"]
-    for kind in ("full", "reduced"):             # the meshless one is in its comparison note
+    for kind in ("full", "reduced", "residual"):  # the meshless one is in its comparison note
         dofs = within[kind]["5%"]
         notes.append(f"{kind}: first within 5 % (max over the sweep) at "
                      + (f"{dofs} DOFs" if dofs else "no resolution run"))
@@ -458,6 +472,7 @@ def hertz_report(out, quick=False, overrides=None, log=None):
 
 # ---------------------------------------------------------------------- plots
 _STYLE = {"full": dict(cmap="Blues", marker="o"), "reduced": dict(cmap="Reds", marker="s"),
+          "residual": dict(cmap="Purples", marker="D"),
           "meshless": dict(cmap="Greens", marker="^")}
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from ..errors import ReportError
 from .reduced_reports import Progress, environment, format_table, write_json
 
-BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz", "meshless")
+BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz", "meshless", "contact")
 NOT_BUILT = ()
 
 
@@ -37,6 +37,9 @@ def _study(name):
     if name == "meshless":
         from .meshless_study import meshless_report
         return meshless_report
+    if name == "contact":
+        from .contact_study import contact_report
+        return contact_report
     raise KeyError(name)
 
 

@@ -372,11 +372,12 @@ def summary(rows):
     return {k: dict(v) for k, v in counts.items()}, "\n".join(lines)
 
 
-def run_study(out, quick=False, kinds=None, materials=None, log=print):
-    """Run the matrix, write stability.json and stability_<kind>.png into out; returns the report."""
+def run_study(out, quick=False, kinds=None, materials=None, log=print, contact_only=False):
+    """Run the matrix, write stability.json and stability_<kind>.png into out; returns the
+    report. contact_only: the contact cells alone (a change to contact touches no other)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    cells = design(quick) + contact_design(quick)
+    cells = ([] if contact_only else design(quick)) + contact_design(quick)
     kinds = kinds or DEFAULT_KINDS
     materials = materials or MATERIALS
     per_kind = {k: kind_materials(k, materials) for k in kinds}
