@@ -40,7 +40,7 @@ STAGE_CODE = {
                  "reduced/reduced_model.py::ReducedModel._restore_cubature",
                  "reduced/reduced_model.py::ReducedModel._build_interface_cubature",
                  "reduced/reduced_model.py::ReducedModel.training_simulation"],
-    "compliance": ["reduced/residual_compliance.py", "reduced/layout.py", "precompute.py",
+    "compliance": ["reduced/residual_compliance.py", "reduced/layout.py", "fem/force_model.py", "precompute.py",
                    "reduced/reduced_model.py::ReducedModel._build_compliance"],
 }
 
