@@ -433,3 +433,32 @@ def test_a_step_no_rung_can_take_from_a_tangled_start_untangles_the_start_first(
     off = _tangled_free_body(0)
     off.step()
     assert off.stats()["stability"] == "failed", "the rule made no difference here"
+
+
+@pytest.mark.parametrize("plan, kept, tried", [
+    ([None, 0.08, 0.03], 3, 3),       # near the bound (0.1): the next rung creates less, kept
+    ([None, 0.08, 0.09], 2, 3),       # ... creates more: the first pass is kept
+    ([None, 0.04], 2, 2),             # under MARGIN x the bound: no extra rung
+])
+def test_a_retry_passing_near_the_energy_bound_tries_the_next_rung(monkeypatch, plan, kept, tried):
+    """Margin (guard.MARGIN): the verdicts are scripted per attempt (None: rejected for
+    energy; a number: passes with that growth) over the real steps of a reduced beam."""
+    from mdss_ros import guard as G
+    real = G.StabilityGuard._attempt
+    calls = []
+
+    def scripted(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False, project=False):
+        stats, v, after = real(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit, project)
+        growth = plan[len(calls)]
+        calls.append(n_sub)
+        return stats, G.Verdict(hard=[] if growth is not None else ["energy"],
+                                growth=1.0 if growth is None else growth, inverted=v.inverted), after
+
+    sim = _sim("reduced")
+    assert sim.guard.settings.energy_growth == 0.1
+    monkeypatch.setattr(G.StabilityGuard, "_attempt", scripted)
+    sim.step()
+    st = sim.stats()
+    assert len(calls) == tried
+    assert st["stability"] == "recovered" and st["guard_attempts"] == kept
+    assert st["energy_growth"] == plan[kept - 1]
