@@ -157,8 +157,8 @@ def limit_dent(solve, compliance, cap):
     (1/s, 1/d) towards d = aim cap, which that model solves in one step. Where the residual
     compliance dominates (c >> w) d(s) is nearly flat until s is small, and the plain
     fixed point s <- s aim cap / d would crawl (measured: 0.92, 0.86, 0.81 ... for a punch
-    driven 15 mm into a 4 cm block). After DENT_ROUNDS the smallest s tried whose dent is
-    within the cap is kept, or, if none is, the compliance is dropped (s = 0: the modes
+    driven 15 mm into a 4 cm block). The first s whose dent is within the cap is kept; if
+    none is within DENT_ROUNDS, the compliance is dropped for the step (s = 0: the modes
     alone, which never dent).
 
     solve(compliance) -> (lam, ...) solves the contact; returns (its result, the compliance
