@@ -226,10 +226,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         if hit is not None:
             arrays, meta = hit
             say(f"cache: residual compliance loaded from {self.cache.path('compliance', key)}")
-            index = np.full(len(self.body.vertices), -1, dtype=np.int64)
-            index[candidates] = np.arange(len(candidates))
-            comp = ResidualCompliance(vertices=candidates, domain=arrays["domain"], C=arrays["C"], index=index,
-                                      info=dict(meta["info"]))
+            comp = ResidualCompliance.on(candidates, arrays["domain"], arrays["C"], len(self.body.vertices),
+                                         dict(meta["info"]))
         else:
             t0 = time.perf_counter()
             comp = build_residual_compliance(self.body, self.layout, self.n_gen, self.vertex_mass, candidates,

@@ -63,6 +63,13 @@ class ResidualCompliance:
     #: compliance costs a step (hertz_block, 800 candidates: about 1 ms a gather).
     _gathered: dict = field(default_factory=dict, compare=False, repr=False)
 
+    @classmethod
+    def on(cls, vertices, domain, C, n_verts, info):
+        """The compliance C on candidate ids vertices (n_c,) of a body of n_verts vertices."""
+        index = np.full(n_verts, -1, dtype=np.int64)
+        index[vertices] = np.arange(len(vertices))
+        return cls(vertices=vertices, domain=domain, C=C, index=index, info=info)
+
     @property
     def n(self):
         return len(self.vertices)
@@ -296,7 +303,4 @@ def build_residual_compliance(body, layout, n_gen, vertex_mass, candidates, prog
     info = {"vertices": int(len(candidates)), "full_dofs": int(len(keep)), "floating": bool(floating),
             "clipped": clipped, "megabytes": C.nbytes / 1e6,
             "diagonal_ratio": float(np.median(np.diag(C) / np.maximum(np.diag(u_c), 1e-300)))}
-    index = np.full(n, -1, dtype=np.int64)
-    index[candidates] = np.arange(len(candidates))
-    return ResidualCompliance(vertices=candidates, domain=layout.row_domain[layout.vertex_row[candidates]],
-                              C=C, index=index, info=info)
+    return ResidualCompliance.on(candidates, layout.row_domain[layout.vertex_row[candidates]], C, n, info)

@@ -100,19 +100,9 @@ def _grasp_hold(overrides):
     from . import grasp_study as g
     kind = overrides.get("model.kind", "reduced")
     sim = Simulator(apply_overrides(g.scene(kind), {k: v for k, v in overrides.items() if k != "model.kind"}))
-    grip, ms = [], []
-    t_from = g.lift_start() - g.T_HOLD / 2
-    while sim.time < g.lift_start() - 0.5 * sim.dt:
-        left, right = g.pad_positions(sim.time + sim.dt, 0.003)
-        sim.set_collider_pose("left", left)
-        sim.set_collider_pose("right", right)
-        sim.step()
-        if sim.time > t_from:
-            c = sim.contacts(split=True)
-            pads = np.isin(c["collider"], ["left", "right"])
-            grip.append(0.5 * float(c["normal_force"][pads].sum()))
-            ms.append(float(sim.stats()["step_ms"]))
-    return float(np.mean(grip)), float(np.median(ms)), float(np.percentile(ms, 90)), sim
+    trace = g.run_grasp(sim, 0.003, until=g.lift_start())
+    ms = trace["step_ms"][trace["t"] > g.lift_start() - g.T_HOLD / 2]
+    return trace["hold_grip"], float(np.median(ms)), float(np.percentile(ms, 90)), sim
 
 
 def run_row(case, label, overrides):

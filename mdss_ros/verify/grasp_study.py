@@ -97,15 +97,16 @@ def write_pad_mesh(path):
     Path(path).write_text("\n".join(lines) + "\n")
 
 
-def run_grasp(sim, squeeze, log=None):
-    """Step a grasp scene (built with timeline_rate None) through its timeline, posing the
-    pads every step. Returns a trace dict of arrays over steps: t, cube_z (mass centre
-    height), pad_z, grip (normal force on each pad: mean of the two, N), and the
-    summary: hold_grip (N while held before the lift), slip (m, how far the cube fell
-    behind the pads over the lift), lifted (m, the cube's rise), mass (kg)."""
+def run_grasp(sim, squeeze, log=None, until=None):
+    """Step a grasp scene (built with timeline_rate None) through its timeline (up to time
+    `until`, default the whole of it), posing the pads every step. Returns a trace dict of
+    arrays over steps: t, cube_z (mass centre height), pad_z, grip (normal force on each
+    pad: mean of the two, N), step_ms (the Simulator's), and the summary: hold_grip (N while
+    held before the lift), slip (m, how far the cube fell behind the pads over the lift),
+    lifted (m, the cube's rise), mass (kg)."""
     mass = float(sim.model.vertex_mass.sum())
-    steps = int(round(duration() / sim.dt))
-    t_out, cube_z, pad_z, grip = [], [], [], []
+    steps = int(round((duration() if until is None else until) / sim.dt))
+    t_out, cube_z, pad_z, grip, step_ms = [], [], [], [], []
     z0 = None
     for k in range(steps):
         t = (k + 1) * sim.dt
@@ -113,6 +114,7 @@ def run_grasp(sim, squeeze, log=None):
         sim.set_collider_pose("left", left)
         sim.set_collider_pose("right", right)
         sim.step()
+        step_ms.append(float(sim.stats()["step_ms"]))
         x = sim.vertex_positions()
         zc = float((sim.model.vertex_mass * x[:, 2]).sum() / mass)
         z0 = zc if z0 is None else z0
@@ -122,12 +124,15 @@ def run_grasp(sim, squeeze, log=None):
         cube_z.append(zc)
         pad_z.append(left[2])
         grip.append(0.5 * float(c["normal_force"][pads].sum()))
-    t_out, cube_z, pad_z, grip = map(np.array, (t_out, cube_z, pad_z, grip))
+    t_out, cube_z, pad_z, grip, step_ms = map(np.array, (t_out, cube_z, pad_z, grip, step_ms))
     before = (t_out > lift_start() - T_HOLD / 2) & (t_out <= lift_start())
     start = np.searchsorted(t_out, lift_start())
-    slip = float((pad_z[-1] - pad_z[start]) - (cube_z[-1] - cube_z[start]))
-    return {"t": t_out, "cube_z": cube_z, "pad_z": pad_z, "grip": grip, "mass": mass,
-            "hold_grip": float(grip[before].mean()), "slip": slip, "lifted": float(cube_z[-1] - cube_z[start])}
+    # A trace stopped at the lift's start has no lift: no slip, no rise.
+    lifting = start < len(t_out) - 1
+    slip = float((pad_z[-1] - pad_z[start]) - (cube_z[-1] - cube_z[start])) if lifting else float("nan")
+    return {"t": t_out, "cube_z": cube_z, "pad_z": pad_z, "grip": grip, "step_ms": step_ms, "mass": mass,
+            "hold_grip": float(grip[before].mean()), "slip": slip,
+            "lifted": float(cube_z[-1] - cube_z[start]) if lifting else float("nan")}
 
 
 def flip_mu(trace):
