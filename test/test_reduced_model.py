@@ -246,8 +246,36 @@ def test_gravity_in_closed_form_equals_projected_vertex_weights(pins):
             m.frames.R[k] = exp_so3(rng.normal(size=3))
     g = np.array([0.3, -1.0, -9.81])
     weights = m.vertex_mass[:, None] * g[None, :]
-    np.testing.assert_allclose(m._external(np.zeros_like(weights), g, m.frames, m.q),
-                               m._external(weights, None, m.frames, m.q), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(m._gravity(g, m.frames), m._applied(weights, m.frames, m.q), rtol=1e-10, atol=1e-10)
+
+
+def test_applied_loads_are_J_transpose_f():
+    """reconstruct.loads_kernel against J^T f written out with numpy: modal U^T R^T f,
+    frame force sum f and torque sum (x - c) x f, for loads on some vertices of a free
+    3-domain body."""
+    from mdss_ros.rotations import cross
+    sim = Simulator(_scene(pins=False, domains={"count": 3}, modes=5))
+    m = sim.model
+    rng = np.random.default_rng(6)
+    for k, dom in enumerate(m.subspace):
+        m.q[k, :dom.r] = 1e-2 * rng.normal(size=dom.r)
+        m.frames.R[k] = exp_so3(rng.normal(size=3))
+        m.frames.c[k] += 0.1 * rng.normal(size=3)
+    f = np.zeros((len(m.body.vertices), 3))
+    loaded = rng.choice(len(f), 40, replace=False)
+    f[loaded] = rng.normal(size=(40, 3))
+    L = m.layout
+    expect = np.zeros(m.n_gen)
+    x = m.positions_of(loaded, m.q, m.frames)
+    for i, v in enumerate(loaded):
+        row = L.vertex_row[v]
+        k = L.row_domain[row]
+        o = m.sub_offsets[k]
+        r = m.subspace[k].r
+        expect[o:o + r] += L.U[row, :, :r].T @ (m.frames.R[k].T @ f[v])
+        expect[o + r:o + r + 3] += f[v]
+        expect[o + r + 3:o + r + 6] += cross(x[i] - m.frames.c[k], f[v])
+    np.testing.assert_allclose(m._applied(f, m.frames, m.q), expect, rtol=1e-12, atol=1e-12)
 
 
 def test_two_phase_coupling_projection_equals_per_pair_kernel():
@@ -319,3 +347,22 @@ def test_a_free_body_lifted_off_a_floor_creates_no_energy():
         worst = max(worst, (dE - W) / (b.kinetic + max(b.elastic, 0.0) + abs(W) + abs(a.gravity - b.gravity)))
     assert worst < 1e-3, worst
     assert sim.vertex_positions()[:, 2].max() < 0.4            # the lifted end, not the whole bar flung up
+
+
+@pytest.mark.parametrize("full_space", [[], [0]])
+def test_the_surface_vertex_set_reads_what_the_layout_gives(full_space):
+    """reconstruct.VertexSet (the surface's basis rows copied out contiguously) gives the
+    same positions, bit for bit, as the layout-wide pass, with and without a full-space
+    domain (whose vertices are read from x_full)."""
+    from mdss_ros.reduced import reconstruct
+    sim = Simulator(_regions_scene(full_space, modes=6))
+    m = sim.model
+    rng = np.random.default_rng(7)
+    for k, dom in enumerate(m.subspace):
+        m.q[k, :dom.r] = 1e-2 * rng.normal(size=dom.r)
+    sim.set_wrench("tip", force=(0.0, 0.0, -5.0))
+    sim.step(2)
+    ids = sim.body.surface.vertex_ids
+    want = reconstruct.positions(m.layout, ids, m.q, m.frames, m.x_full)
+    assert np.array_equal(sim.surface_positions(), want)
+    assert np.array_equal(m._surface_set.positions(m.q, m.frames, m.x_full), want)

@@ -19,7 +19,7 @@ from ..fem.assembly import assemble_matrix, assemble_vector
 from ..fem.elements import element_forces
 from ..loads import sparse_loads
 from ..threads import pick
-from ..rotations import cross
+from .reconstruct import loads_kernel
 from .coupling import (interface_jacobian, interface_jacobian_serial, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 
@@ -160,37 +160,41 @@ class GeneralisedForces:
         mask = np.repeat(full, 3, axis=1)
         return K_c * (mask[:, :, None] & mask[:, None, :])
 
-    def _external(self, f_ext, gravity, frames, q):
-        """J^T f_ext + gravity at the step start (n_gen,).
-
-        Only vertices that carry a load are reconstructed. Gravity is in closed form: on a
-        subspace domain it is m g on the frame, (sum_l m_l U_l)^T R^T g on the modes (zero
-        for a free domain, whose basis is mass-orthogonal to translations) and no torque
-        about the mass centre.
-        """
+    def _applied(self, f_ext, frames, q):
+        """J^T f_ext at the step start (n_gen,): the applied point loads as generalised
+        forces. Only the loaded vertices are visited (reconstruct.loads_kernel, one compiled
+        pass): on a subspace domain U_l^T R^T f on the modes, f on the frame's linear rows
+        and (x_l - c) x f on its angular rows; on full-space rows f itself."""
         L = self.layout
-        Fext = np.zeros(self.n_gen)
+        F = np.zeros(self.n_gen)
         loaded, f_loaded = sparse_loads(f_ext)
-        g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
-        modal = np.einsum("dia,di->da", L.mass_moment, np.einsum("dji,j->di", frames.R, g))
-        force = np.zeros((L.D, 3))
-        torque = np.zeros((L.D, 3))
-        rows = L.vertex_row[loaded]
-        sub = rows >= 0
-        if sub.any():
-            rows, fk = rows[sub], f_loaded[sub]
-            k = L.row_domain[rows]
-            local = np.einsum("li,lij->lj", fk, frames.R[k])             # R^T f per vertex
-            np.add.at(modal, k, np.einsum("lia,li->la", L.U[rows], local))
-            x = self.positions_of(loaded[sub], q, frames)
-            np.add.at(force, k, fk)
-            np.add.at(torque, k, cross(x - frames.c[k], fk))
-        Fext[L.q_index[L.mask]] = modal[L.mask]
+        if not len(loaded):
+            return F
+        modal, force, torque = L.zeros(), np.zeros((L.D, 3)), np.zeros((L.D, 3))
+        loads_kernel(L.vertex_row[loaded], np.ascontiguousarray(f_loaded, dtype=np.float64), L.U, L.r_local,
+                     L.row_domain, np.ascontiguousarray(q), np.ascontiguousarray(frames.R),
+                     np.ascontiguousarray(frames.c), modal, force, torque)
+        F[L.modal_rows] = modal[L.mask]
         mv = L.movers
-        Fext[L.lin_index] = L.total_mass[mv, None] * g + force[mv]
-        Fext[L.ang_index] = torque[mv]
+        F[L.lin_index] = force[mv]
+        F[L.ang_index] = torque[mv]
         if self.F:
-            Fext[self.S:] = self._ff_mass * g[self._ff_axis]
             dof = self.ff_pattern.free_dof[3 * loaded[:, None] + np.arange(3)]     # (k, 3), -1: not full-space
-            Fext[self.S + dof[dof >= 0]] += f_loaded[dof >= 0]
-        return Fext
+            F[self.S + dof[dof >= 0]] += f_loaded[dof >= 0]
+        return F
+
+    def _gravity(self, gravity, frames):
+        """Gravity as generalised forces (n_gen,), in closed form: on a subspace domain m g
+        on the frame, (sum_l m_l U_l)^T R^T g on the modes (zero for a free domain, whose
+        basis is mass-orthogonal to translations) and no torque about the mass centre."""
+        L = self.layout
+        F = np.zeros(self.n_gen)
+        if gravity is None:
+            return F
+        g = np.asarray(gravity, dtype=np.float64)
+        modal = np.einsum("dia,di->da", L.mass_moment, np.einsum("dji,j->di", frames.R, g))
+        F[L.modal_rows] = modal[L.mask]
+        F[L.lin_index] = L.total_mass[L.movers, None] * g
+        if self.F:
+            F[self.S:] = self._ff_mass * g[self._ff_axis]
+        return F

@@ -155,6 +155,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         self.sub_offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         self.S = int(self.sub_offsets[-1])
         self.layout = DomainLayout.build(self.subspace, self.sub_offsets, n)
+        self._surface_set = reconstruct.VertexSet(self.layout, self.body.surface.vertex_ids)
         full_free = np.zeros(n, dtype=bool)
         for fd in self.full:
             full_free[fd.vertices[fd.free]] = True
@@ -549,17 +550,23 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         return x
 
     def _reduced_positions(self, ids, q, frames, x_full):
+        q_, frames_ = self.q if q is None else q, self.frames if frames is None else frames
+        x_full_ = self.x_full if x_full is None else x_full
+        if ids is self.body.surface.vertex_ids:
+            def compute():
+                return self._surface_set.positions(q_, frames_, x_full_)
+        else:
+            def compute():
+                return reconstruct.positions(self.layout, ids, q_, frames_, x_full_)
         if q is not None or frames is not None or x_full is not None or self.F or len(ids) < 256:
             # A few loaded vertices cost nothing to rebuild, and kept they would push the
             # surface out of the two entries.
-            return reconstruct.positions(self.layout, ids, self.q if q is None else q,
-                                         self.frames if frames is None else frames,
-                                         self.x_full if x_full is None else x_full)
+            return compute()
         for k_ids, k_q, k_c, k_R, x in self._positions_kept:
             if (k_ids is ids and np.array_equal(k_q, self.q) and np.array_equal(k_c, self.frames.c)
                     and np.array_equal(k_R, self.frames.R)):
                 return x
-        x = reconstruct.positions(self.layout, ids, self.q, self.frames, self.x_full)
+        x = compute()
         x.flags.writeable = False
         key = (ids, self.q.copy(), self.frames.c.copy(), self.frames.R.copy())
         self._positions_kept = [key + (x,)] + self._positions_kept[:1]

@@ -72,7 +72,7 @@ class Step:
         self._indefinite = False
         # The applied loads as generalised forces at the step start (no gravity: it is a
         # potential); their work over the step is dt F_app . Q' (reported for the guard).
-        F_app = self._external(f_ext, None, self.frames, self.q)
+        F_app = self._applied(f_ext, self.frames, self.q)
         base = (self.q.copy(), self.frames.copy(), self._full_rows(self.x_full), gm, inertia)
         Qn = self.get_Q()
         if gm is not None:
@@ -88,7 +88,7 @@ class Step:
         mass = self._subspace_mass(self.frames, predicted_dt=dt, inertia=inertia)
         system = StepSystem(self, mass, dt, terms.alpha, self.beta, (K_ss, K_sI, K_ff),
                             centrifugal if implicit else None)
-        Fn = self._external(f_ext, gravity, self.frames, self.q) + \
+        Fn = F_app + self._gravity(gravity, self.frames) + \
             self._explicit_terms(self.frames, self.q, self.qd, dt, coriolis=not implicit)
         if gm is not None:
             Fn = Fn + self._global_fictitious(gm)
