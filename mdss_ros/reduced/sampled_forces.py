@@ -20,7 +20,7 @@ from ..fem.material_kernels import WORK_LEN, material_point_ws
 from ..threads import pick, serial_twin
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
-# (or a cleared NUMBA_CACHE_DIR). Last material change: neo-Hookean makes one scratch view, not thirteen.
+# (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean Hessian written out in scalars.
 
 
 def sample_jacobians(U3, tets, grads):
