@@ -157,12 +157,14 @@ def contributions(G, volume, Q, kind_id, params, want_hessian, project, out):
 
 
 @njit(cache=True, parallel=True)
-def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, WG_out, CG_out):
+def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, CG_out):
     """sampled_kernel for every domain in one pass: samples stacked per domain and padded
     with zero-weight samples (a padded sample is skipped and its outputs are zero).
 
     G (D, s, 9, r_max); wV (D, s); q (D, r_max); energy_out (D, s); g_out (D, s, r_max);
-    WG_out, CG_out (D, s, 9, r_max): domain k's K = sum_s WG[k, s]^T CG[k, s].
+    CG_out (D, s, 9, r_max) = w C_s G_s: domain k's K = sum_s G[k, s]^T CG[k, s]. The
+    weight rides on C G so that the GEMM's left factor is G itself: a second (D, s, 9,
+    r_max) array w G, written every step, was 3 MB of stores on armadillo_class.
     """
     D, s_count, _, r = G.shape
     n_chunks_d = (s_count + _CHUNK - 1) // _CHUNK
@@ -182,7 +184,6 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
                 if want_hessian:
                     for a in range(9):
                         for b in range(r):
-                            WG_out[d, s, a, b] = 0.0
                             CG_out[d, s, a, b] = 0.0
                 continue
             _deformation_gradient(G[d, s], q[d], F)
@@ -203,11 +204,9 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
                     row = CG_out[d, s, a]
                     row[:] = 0.0
                     for k in range(9):
-                        c = C[a, k]
+                        c = w * C[a, k]
                         for b in range(r):
                             row[b] += c * G[d, s, k, b]
-                    for b in range(r):
-                        WG_out[d, s, a, b] = w * G[d, s, a, b]
 
 
 stacked_kernel_serial = serial_twin(stacked_kernel)
@@ -234,19 +233,18 @@ class StackedSamples:
         self.material = material
         self.energy = np.empty((D, s_max))
         self.g = np.empty((D, s_max, r_max))
-        self.WG = np.empty((D, s_max, 9, r_max))
         self.CG = np.empty((D, s_max, 9, r_max))
+        self._GT = self.G.reshape(D, s_max * 9, r_max).transpose(0, 2, 1)     # a view: K's left factor
 
     def evaluate(self, q, want_hessian=True):
         """(energy (D,), g (D, r_max), K (D, r_max, r_max) or None) at q (D, r_max)."""
         D, s, _, r = self.G.shape
         m = self.material
-        sampled_buffers = (self.WG, self.CG) if want_hessian else (np.empty((D, 1, 9, r)),) * 2
+        CG = self.CG if want_hessian else np.empty((D, 1, 9, r))
         pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
             self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
-            self.energy, self.g, *sampled_buffers)
+            self.energy, self.g, CG)
         energy, g = self.energy.sum(1), self.g.sum(1)
         if not want_hessian:
             return energy, g, None
-        K = np.matmul(self.WG.reshape(D, s * 9, r).transpose(0, 2, 1), self.CG.reshape(D, s * 9, r))
-        return energy, g, K
+        return energy, g, np.matmul(self._GT, self.CG.reshape(D, s * 9, r))
