@@ -21,9 +21,14 @@ class VertexLoads:
             return
         ids = np.concatenate([i for i, _ in parts])
         f = np.concatenate([f for _, f in parts])
-        self.ids, inv = np.unique(ids, return_inverse=True)
-        self.forces = np.zeros((len(self.ids), 3))
-        np.add.at(self.forces, inv, f)
+        # A stable sort and one reduceat over the runs of equal ids: the same sums, in the
+        # same order, as np.unique + np.add.at, which took 0.2 ms a step for two handles of
+        # armadillo_class.
+        order = np.argsort(ids, kind="stable")
+        ids = ids[order]
+        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        self.ids = ids[starts]
+        self.forces = np.add.reduceat(f[order], starts, axis=0) if len(starts) < len(ids) else f[order]
 
     def dense(self):
         out = np.zeros((self.n, 3))
@@ -45,16 +50,18 @@ def sparse_loads(f_ext):
 def wrench_to_vertex_forces(x, mass, force, torque):
     """Spread a wrench over a set of vertices by mass.
 
-    x (h, 3) current positions; mass (h,); force, torque (3,) world frame, torque about
+    x (h, 3) current positions, or a function giving them (called only for a torque: a
+    pure force needs no positions); mass (h,); force, torque (3,) world frame, torque about
     the set's centre of mass. Returns (h, 3) forces f_a = m_a (force / m + alpha x r_a)
     with alpha = I^-1 torque, so that sum f = force and sum r x f = torque exactly.
     """
     m = mass.sum()
-    c = (mass[:, None] * x).sum(0) / m
-    r = x - c
     f = mass[:, None] * (np.asarray(force, dtype=np.float64) / m)
     torque = np.asarray(torque, dtype=np.float64)
     if np.any(torque != 0.0):
+        x = x() if callable(x) else x
+        c = (mass[:, None] * x).sum(0) / m
+        r = x - c
         inertia = (mass * (r * r).sum(1)).sum() * np.eye(3) - (mass[:, None, None] * r[:, :, None] * r[:, None, :]).sum(0)
         # A handle on a line (or one vertex) has a singular inertia: lstsq gives the
         # minimum-norm angular acceleration, which still reproduces the torque it can.

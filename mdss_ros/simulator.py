@@ -218,8 +218,8 @@ class Simulator:
         parts = []
         for handle, (force, torque) in self._wrenches.items():
             ids = self.body.handles[handle]
-            parts.append((ids, wrench_to_vertex_forces(self.model.positions_of(ids), self.model.vertex_mass[ids],
-                                                       force, torque)))
+            parts.append((ids, wrench_to_vertex_forces(lambda ids=ids: self.model.positions_of(ids),
+                                                       self.model.vertex_mass[ids], force, torque)))
         for ids, bary, force, _ in self._point_forces:
             parts.append((ids, bary[:, None] * force[None, :]))
         return VertexLoads(len(self.body.vertices), parts)

@@ -36,6 +36,9 @@ def test_wrench_spread_reproduces_force_and_torque():
     c = (m[:, None] * x).sum(0) / m.sum()
     np.testing.assert_allclose(f.sum(0), force, atol=1e-12)
     np.testing.assert_allclose(np.cross(x - c, f).sum(0), torque, atol=1e-12)
+    # Positions given as a function are read for a torque only: a pure force needs none.
+    np.testing.assert_array_equal(wrench_to_vertex_forces(lambda: x, m, force, torque), f)
+    np.testing.assert_allclose(wrench_to_vertex_forces(lambda: 1 / 0, m, force, np.zeros(3)).sum(0), force, atol=1e-12)
 
 
 def test_vertex_loads_sum_repeated_ids_and_match_the_dense_array():
@@ -50,6 +53,13 @@ def test_vertex_loads_sum_repeated_ids_and_match_the_dense_array():
     ids, f = sparse_loads(dense)
     np.testing.assert_array_equal(ids, loads.ids)
     np.testing.assert_array_equal(f, loads.forces)
+    # Many parts with repeated ids: the same sums as adding them one by one.
+    rng = np.random.default_rng(2)
+    parts = [(np.sort(rng.choice(30, 12, replace=False)), rng.normal(size=(12, 3))) for _ in range(4)]
+    want = np.zeros((30, 3))
+    for i, f in parts:
+        want[i] += f
+    np.testing.assert_allclose(VertexLoads(30, parts).dense(), want, rtol=0, atol=1e-14)
     single = VertexLoads(10, [a])
     np.testing.assert_array_equal(single.dense()[[3, 7]], a[1])
     assert VertexLoads(10).dense().sum() == 0.0
