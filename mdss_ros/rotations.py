@@ -1,5 +1,6 @@
 """Rotation helpers. Quaternions are (qx, qy, qz, qw), as in ROS messages."""
 import numpy as np
+from numba import njit
 
 
 def quat_from_matrix(R):
@@ -46,17 +47,38 @@ def exp_so3(w):
 
 
 def exp_so3_batch(w):
-    """exp([w_i]x) for a stack w (n, 3): (n, 3, 3), the same formula as exp_so3 per row."""
-    w = np.asarray(w, dtype=np.float64).reshape(-1, 3)
-    th = np.sqrt((w * w).sum(1))
-    z = np.zeros(len(w))
-    K = np.stack([np.stack([z, -w[:, 2], w[:, 1]], 1), np.stack([w[:, 2], z, -w[:, 0]], 1),
-                  np.stack([-w[:, 1], w[:, 0], z], 1)], 1)
-    small = th < 1e-8
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5, (1 - np.cos(safe)) / safe ** 2)
-    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    """exp([w_i]x) for a stack w (n, 3): (n, 3, 3), the same formula as exp_so3 per row
+    (one compiled pass: the numpy expression of a dozen small ops cost about 50 us a call,
+    and a reduced step makes three)."""
+    w = np.ascontiguousarray(w, dtype=np.float64).reshape(-1, 3)
+    out = np.empty((len(w), 3, 3))
+    _exp_so3_kernel(w, out)
+    return out
+
+
+@njit(cache=True)
+def _exp_so3_kernel(w, out):
+    """out[i] = I + a [w_i]x + b [w_i]x^2, a = sin(t)/t, b = (1 - cos t)/t^2 (t = |w_i|;
+    the limits 1 and 1/2 below t = 1e-8)."""
+    for n in range(w.shape[0]):
+        x, y, z = w[n, 0], w[n, 1], w[n, 2]
+        th = np.sqrt(x * x + y * y + z * z)
+        if th < 1e-8:
+            a, b = 1.0, 0.5
+        else:
+            a = np.sin(th) / th
+            b = (1.0 - np.cos(th)) / th ** 2
+        # [w]x^2 = w w^T - |w|^2 I
+        xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+        out[n, 0, 0] = 1.0 + b * (-yy - zz)
+        out[n, 0, 1] = -a * z + b * xy
+        out[n, 0, 2] = a * y + b * xz
+        out[n, 1, 0] = a * z + b * xy
+        out[n, 1, 1] = 1.0 + b * (-xx - zz)
+        out[n, 1, 2] = -a * x + b * yz
+        out[n, 2, 0] = -a * y + b * xz
+        out[n, 2, 1] = a * x + b * yz
+        out[n, 2, 2] = 1.0 + b * (-xx - yy)
 
 
 def orthonormalise_batch(R):

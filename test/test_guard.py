@@ -348,7 +348,9 @@ def test_reduced_guard_counts_inverted_samples_and_coupling_elements_like_the_ve
         x = m.vertex_positions()
         tets = [dom.vertices[dom.forces.tets[dom.sampled.elements]] for dom in m.subspace] + [m.body.tets[m.c_tets]]
         expected = sum(inverted_tets(x, t) for t in tets)
-        assert m._guard_inverted() == expected
+        assert m._guard_inverted() == expected        # samples' det F from that evaluation
+        m.samples.det_at = None
+        assert m._guard_inverted() == expected        # formed again from q
         counts.append(expected)
     assert counts[0] == 0 and counts[-1] > 0
 

@@ -11,7 +11,7 @@ docs/method.md §15).
 
 import numpy as np
 
-from .measure import frame_measure, inverted_samples
+from .measure import frame_measure
 
 
 class GuardTerms:
@@ -149,7 +149,7 @@ class GuardTerms:
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
         from ..state_measure import inverted_tets
-        n = inverted_samples(self.samples.G, self.q, self.samples.valid) if self.samples is not None else 0
+        n = self.samples.inverted_count(self.q) if self.samples is not None else 0
         x_I = None
         if self.coupling_kind == "element":
             c = self._start_eval

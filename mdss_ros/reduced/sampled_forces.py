@@ -18,6 +18,7 @@ from numba import njit, prange
 
 from ..fem.material_kernels import WORK_LEN, material_point_ws
 from ..threads import pick, serial_twin
+from .measure import inverted_samples
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
 # (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean Hessian written out in scalars.
@@ -157,11 +158,13 @@ def contributions(G, volume, Q, kind_id, params, want_hessian, project, out):
 
 
 @njit(cache=True, parallel=True)
-def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, CG_out):
+def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out, g_out, CG_out, det_out):
     """sampled_kernel for every domain in one pass: samples stacked per domain and padded
     with zero-weight samples (a padded sample is skipped and its outputs are zero).
 
     G (D, s, 9, r_max); wV (D, s); q (D, r_max); energy_out (D, s); g_out (D, s, r_max);
+    det_out (D, s): det F of each sample (1 for a skipped one), which the stability guard
+    counts inverted samples from without forming F again;
     CG_out (D, s, 9, r_max) = w C_s G_s: domain k's K = sum_s G[k, s]^T CG[k, s]. The
     weight rides on C G so that the GEMM's left factor is G itself: a second (D, s, 9,
     r_max) array w G, written every step, was 3 MB of stores on armadillo_class.
@@ -179,6 +182,7 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
             w = wV[d, s]
             if w == 0.0:
                 energy_out[d, s] = 0.0
+                det_out[d, s] = 1.0
                 for b in range(r):
                     g_out[d, s, b] = 0.0
                 if want_hessian:
@@ -187,6 +191,9 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
                             CG_out[d, s, a, b] = 0.0
                 continue
             _deformation_gradient(G[d, s], q[d], F)
+            det_out[d, s] = (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+                             - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+                             + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
             psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
             energy_out[d, s] = w * psi
             # Loops ordered so that the innermost runs along the modes (contiguous rows of
@@ -235,16 +242,30 @@ class StackedSamples:
         self.g = np.empty((D, s_max, r_max))
         self.CG = np.empty((D, s_max, 9, r_max))
         self._GT = self.G.reshape(D, s_max * 9, r_max).transpose(0, 2, 1)     # a view: K's left factor
+        self.det = np.ones((D, s_max))
+        self.det_at = None              # the q (D, r_max) that det was computed at
+        # Every real sample has a weight: the kernel forms F for all of them (a zero weight
+        # would be skipped, and inverted_count could not see it).
+        self._weighted = not np.any(self.valid & (self.wV == 0.0))
 
     def evaluate(self, q, want_hessian=True):
         """(energy (D,), g (D, r_max), K (D, r_max, r_max) or None) at q (D, r_max)."""
         D, s, _, r = self.G.shape
         m = self.material
         CG = self.CG if want_hessian else np.empty((D, 1, 9, r))
+        q = np.ascontiguousarray(q)
         pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
-            self.G, self.wV, np.ascontiguousarray(q), m.kind_id, m.params, bool(want_hessian), False,
-            self.energy, self.g, CG)
+            self.G, self.wV, q, m.kind_id, m.params, bool(want_hessian), False,
+            self.energy, self.g, CG, self.det)
+        self.det_at = q.copy()
         energy, g = self.energy.sum(1), self.g.sum(1)
         if not want_hessian:
             return energy, g, None
         return energy, g, np.matmul(self._GT, self.CG.reshape(D, s * 9, r))
+
+    def inverted_count(self, q):
+        """Samples with det F <= 0 (NaN counts) at q (D, r_max), read from the last
+        evaluation when it was at q, else formed again (measure.inverted_samples)."""
+        if self._weighted and self.det_at is not None and np.array_equal(self.det_at, q):
+            return int(np.count_nonzero(~(self.det > 0.0) & self.valid))
+        return inverted_samples(self.G, np.ascontiguousarray(q), self.valid)
