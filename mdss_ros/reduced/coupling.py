@@ -318,12 +318,25 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
                 en = pair_entry[e, a, b]
                 if en < 0:
                     continue                 # a or b full-space: project_coupling_full
-                for i in range(3):
-                    k0 = we * K_e[e, 3 * a + i, 3 * b]
-                    k1 = we * K_e[e, 3 * a + i, 3 * b + 1]
-                    k2 = we * K_e[e, 3 * a + i, 3 * b + 2]
-                    for t in range(s_max):
-                        KJ[en, i, t] += k0 * J[lb, 0, t] + k1 * J[lb, 1, t] + k2 * J[lb, 2, t]
+                # The 3 x 3 block, weighted, then one pass along the columns that reads each
+                # J value once for all three rows (the loop over rows outside re-read J
+                # three times: 1.6x slower here, load-bound).
+                k00 = we * K_e[e, 3 * a, 3 * b]
+                k01 = we * K_e[e, 3 * a, 3 * b + 1]
+                k02 = we * K_e[e, 3 * a, 3 * b + 2]
+                k10 = we * K_e[e, 3 * a + 1, 3 * b]
+                k11 = we * K_e[e, 3 * a + 1, 3 * b + 1]
+                k12 = we * K_e[e, 3 * a + 1, 3 * b + 2]
+                k20 = we * K_e[e, 3 * a + 2, 3 * b]
+                k21 = we * K_e[e, 3 * a + 2, 3 * b + 1]
+                k22 = we * K_e[e, 3 * a + 2, 3 * b + 2]
+                for t in range(s_max):
+                    j0 = J[lb, 0, t]
+                    j1 = J[lb, 1, t]
+                    j2 = J[lb, 2, t]
+                    KJ[en, 0, t] += k00 * j0 + k01 * j1 + k02 * j2
+                    KJ[en, 1, t] += k10 * j0 + k11 * j1 + k12 * j2
+                    KJ[en, 2, t] += k20 * j0 + k21 * j1 + k22 * j2
         f_sum[la, 0] = f0
         f_sum[la, 1] = f1
         f_sum[la, 2] = f2
