@@ -82,6 +82,12 @@ class GeneralisedForces:
             if want_hessian:
                 K_f[:nf] *= alive[:, None, None]
                 self._ff_full_K = K_f           # coupling rows are overwritten below
+        if not self.F and not len(self.c_elem):
+            # One domain: no coupling elements. Their empty kernel calls cost 40 us a step,
+            # 15 % of a 12-DOF model's step.
+            t2 = time.perf_counter()
+            self.timing = {"domain_ms": 1e3 * (t1 - t0), "coupling_ms": 1e3 * (t2 - t1)}
+            return G, K_ss, K_sI, K_ff, energy, np.zeros((0, 3, self.s_max)), np.zeros((0, 3))
         # Coupling elements (world frame).
         J, x_I = self._interface_J(q, frames)
         if self.coupling_kind == "element":
