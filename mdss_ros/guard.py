@@ -466,8 +466,8 @@ class StabilityGuard:
             if v.hard:
                 return stats, v, after
             # Soft signs do not cut an attempt short (a kept attempt must cover all of dt).
-            verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)), growth=max(verdict.growth, v.growth),
-                              inverted=v.inverted)
+            verdict = Verdict(soft=sorted(set(verdict.soft) | set(v.soft)) if v.soft or verdict.soft else [],
+                              growth=max(verdict.growth, v.growth), inverted=v.inverted)
             self._work += work
             prev = after
         return stats, verdict, prev
@@ -505,6 +505,9 @@ def _work(f_app, before, after, contact, model_work=None, contact_work=None):
     (ReducedModel: dt F_app . Q', its backward-Euler work, which stays right when a frame
     turns a large angle in one step), else sum f . (x_after - x_before) (= dt f . v' for
     backward Euler in full space). Contacts: sum f . (x_after - x_before)."""
+    if model_work is not None and (contact_work is not None or not contact):
+        # The models' own accounts (a reduced step reports both): no arrays to read.
+        return float(model_work) + (float(contact_work) if contact_work is not None else 0.0)
     with np.errstate(all="ignore"):
         if model_work is not None:
             w = float(model_work)

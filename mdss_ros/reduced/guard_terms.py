@@ -9,8 +9,11 @@ docs/method.md §15).
   largest s in [0, 1] (bisection) that leaves no inverted element.
 """
 
+import math
+
 import numpy as np
 
+from ..state_measure import Measure, inverted_tets
 from .measure import frame_measure
 
 
@@ -32,7 +35,6 @@ class GuardTerms:
         |v| + |w| (rho + sigma |q|) + sigma |qd| (rho the largest rest radius, sigma the
         largest per-vertex basis norm); inverted elements among those the forces sample
         (cubature samples, coupling and full-space elements)."""
-        from ..state_measure import Measure
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
         with np.errstate(all="ignore"):
@@ -57,7 +59,7 @@ class GuardTerms:
             except (ArithmeticError, ValueError, RuntimeError):
                 elastic = np.nan
             inverted = self._guard_inverted() if check_inversion else 0
-        finite = bool(np.isfinite([kinetic, elastic, grav, speed]).all())
+        finite = all(math.isfinite(v) for v in (kinetic, elastic, grav, speed))
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 
     def mean_motion(self):
@@ -97,7 +99,6 @@ class GuardTerms:
         gravity potential and (frame velocities kept, modes carry none) the linear
         momentum do not change.
         Returns s (1.0: nothing inverted), or None if even s = 0 leaves an inverted element."""
-        from ..state_measure import inverted_tets
         from ..rotations import exp_so3, quat_from_matrix
         q0, qd0, fr0, xf0 = self.q, self.qd, self.frames, self.x_full
         m = self.layout.total_mass
@@ -148,7 +149,6 @@ class GuardTerms:
         where it can: a cubature sample's F = I + unvec(G_s q) is at hand in reduced
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
-        from ..state_measure import inverted_tets
         n = self.samples.inverted_count(self.q) if self.samples is not None else 0
         x_I = None
         if self.coupling_kind == "element":

@@ -127,3 +127,14 @@ def inverted_samples(G, q, valid):
             if not det > 0.0:
                 n += 1
     return n
+
+
+@njit(cache=True)
+def count_not_positive(det, valid):
+    """How many entries of det (D, s) are not > 0 (NaN counts) where valid (D, s) is set."""
+    n = 0
+    for d in range(det.shape[0]):
+        for s in range(det.shape[1]):
+            if valid[d, s] and not det[d, s] > 0.0:
+                n += 1
+    return n

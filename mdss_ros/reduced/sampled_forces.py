@@ -18,7 +18,7 @@ from numba import njit, prange
 
 from ..fem.material_kernels import WORK_LEN, material_point_ws
 from ..threads import pick, serial_twin
-from .measure import inverted_samples
+from .measure import count_not_positive, inverted_samples
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
 # (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean Hessian written out in scalars.
@@ -267,5 +267,5 @@ class StackedSamples:
         """Samples with det F <= 0 (NaN counts) at q (D, r_max), read from the last
         evaluation when it was at q, else formed again (measure.inverted_samples)."""
         if self._weighted and self.det_at is not None and np.array_equal(self.det_at, q):
-            return int(np.count_nonzero(~(self.det > 0.0) & self.valid))
+            return count_not_positive(self.det, self.valid)
         return inverted_samples(self.G, np.ascontiguousarray(q), self.valid)
