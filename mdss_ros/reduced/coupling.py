@@ -382,7 +382,20 @@ def project_sums(J, f_sum, row_dom, sizes, offsets, G):
             G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
 
 
+@njit(cache=True, parallel=True)
+def project_sums_by_domain(J, f_sum, dom_start, sizes, offsets, G):
+    """project_sums when each domain's interface rows are one run, rows dom_start[k] to
+    dom_start[k + 1] (D + 1,): parallel over domains, each writing only its own rows of G,
+    in the same order as project_sums (so the same sums)."""
+    for k in prange(sizes.shape[0]):
+        o = offsets[k]
+        for la in range(dom_start[k], dom_start[k + 1]):
+            for t in range(sizes[k]):
+                G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
+
+
 accumulate_KJ_serial = serial_twin(accumulate_KJ)
+project_sums_by_domain_serial = serial_twin(project_sums_by_domain)
 gather_entry_J_serial = serial_twin(gather_entry_J)
 project_pairs_serial = serial_twin(project_pairs)
 interface_jacobian_serial = serial_twin(interface_jacobian)
@@ -422,6 +435,11 @@ class TwoPhaseProjection:
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if n_e else np.zeros(0, np.int64)
         self.groups = np.stack([k_e[starts], entry_dom[starts], starts], axis=1).astype(np.int64)
         self._buffers = None
+        # The model orders interface rows by domain, full-space ones last: then each
+        # domain's rows are one run and J^T f runs parallel over domains.
+        sub = self.row_dom[self.row_dom >= 0]
+        runs = bool(np.all(self.row_dom[:len(sub)] >= 0) and np.all(np.diff(sub) >= 0))
+        self.dom_start = np.searchsorted(sub, np.arange(D + 1)).astype(np.int64) if runs else None
 
     def add(self, f_e, K_e, J, G, A_ss, weights=None):
         """f_e (n_c, k, 3), K_e (n_c, 3k, 3k) world-frame element forces and stiffness,
@@ -437,7 +455,10 @@ class TwoPhaseProjection:
         n_I, n_e = len(self.ptr) - 1, len(self.entry_vertex)
         pick(accumulate_KJ, accumulate_KJ_serial, n_I, weight=4)(
             self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
-        if G is not None:
+        if G is not None and self.dom_start is not None:
+            pick(project_sums_by_domain, project_sums_by_domain_serial, n_I)(
+                J, f_sum, self.dom_start, self.sizes, self.offsets, G)
+        elif G is not None:
             project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
         pick(gather_entry_J, gather_entry_J_serial, n_e)(J, self.entry_vertex, JE)
         pick(project_pairs, project_pairs_serial, n_e)(self.groups, self.sizes, self.offsets, JE, KJ, A_ss)

@@ -19,7 +19,7 @@ from ..fem.assembly import assemble_matrix, assemble_vector
 from ..fem.elements import element_forces
 from ..loads import sparse_loads
 from ..threads import pick
-from .reconstruct import loads_kernel
+from .reconstruct import loads_kernel, loads_kernel_serial
 from .coupling import (interface_jacobian, interface_jacobian_serial, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
 
@@ -177,9 +177,10 @@ class GeneralisedForces:
         if not len(loaded):
             return F
         modal, force, torque = L.zeros(), np.zeros((L.D, 3)), np.zeros((L.D, 3))
-        loads_kernel(L.vertex_row[loaded], np.ascontiguousarray(f_loaded, dtype=np.float64), L.U, L.r_local,
-                     L.row_domain, np.ascontiguousarray(q), np.ascontiguousarray(frames.R),
-                     np.ascontiguousarray(frames.c), modal, force, torque)
+        pick(loads_kernel, loads_kernel_serial, len(loaded), weight=4)(
+            L.vertex_row[loaded], np.ascontiguousarray(f_loaded, dtype=np.float64), L.U, L.r_local, L.row_domain,
+            np.ascontiguousarray(q), np.ascontiguousarray(frames.R), np.ascontiguousarray(frames.c),
+            modal, force, torque)
         F[L.modal_rows] = modal[L.mask]
         mv = L.movers
         F[L.lin_index] = force[mv]
