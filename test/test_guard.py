@@ -215,6 +215,16 @@ def test_fictitious_matrices_split_the_explicit_force():
     direct = (2.0 * np.einsum("b,abk,k->a", qd0, t.W, w0) - np.einsum("i,aij,j->a", w0, t.B1, w0)
               - np.einsum("b,i,abij,j->a", q0, w0, t.B2, w0) + (w0 @ w0) * (t.s + q0))
     np.testing.assert_allclose(f[0, :r], direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
+    # With an angular acceleration too (the Euler term W(q) alpha), every domain.
+    alpha = rng.normal(size=omega.shape)
+    fa = fictitious_forces(L, q, qd, omega, alpha)
+    for k, dom in enumerate(m.subspace):
+        t, r = dom.tensors, dom.r
+        w0, a0, q0, qd0 = omega[k], alpha[k], q[k, :r], qd[k, :r]
+        direct = (2.0 * np.einsum("b,abk,k->a", qd0, t.W, w0) + np.einsum("b,abk,k->a", q0, t.W, a0)
+                  - np.einsum("i,aij,j->a", w0, t.B1, w0)
+                  - np.einsum("b,i,abij,j->a", q0, w0, t.B2, w0) + (w0 @ w0) * (t.s + q0))
+        np.testing.assert_allclose(fa[k, :r], direct, rtol=1e-12, atol=1e-12 * np.abs(direct).max())
     C, K = C[L.movable], K[L.movable]
     np.testing.assert_allclose(C, -C.transpose(0, 2, 1), atol=1e-12 * np.abs(C).max())
     np.testing.assert_allclose(K, K.transpose(0, 2, 1), atol=1e-12 * np.abs(K).max())
