@@ -21,7 +21,7 @@ from ..threads import pick, serial_twin
 from .measure import count_not_positive, inverted_samples
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
-# (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean Hessian written out in scalars.
+# (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean Hessian's upper triangle, same bits as before.
 
 
 def sample_jacobians(U3, tets, grads):
