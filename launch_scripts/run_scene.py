@@ -96,6 +96,7 @@ RECORD_TOPICS = [   # (topic, type, latched)
 ]
 DEFAULT_NODE = "mdss"            # the node's own default name (mdss_ros.node.NODE_NAME)
 RECORDER_MATCHED_MARK = "recorder: matched a publisher on "
+TEARDOWN_S = 10.0                # the clock master exits after this long in a hung DDS teardown
 DIAG_SUFFIX = ": simulation"     # the node's /diagnostics status is "<node name>: simulation"
 
 
@@ -103,6 +104,12 @@ def recorder_name(node_ns):
     """The recorder's node name: one per body, so the graph has no two nodes of one name
     (and the clock master can wait for each recorder by name)."""
     return f"{node_ns.strip('/')}_recorder"
+
+
+def timeline_name(node_ns):
+    """The timeline publisher's node name (force_publisher.InputPublisher's default for the
+    node `node_ns`): the clock master waits for its /clock subscription by this name."""
+    return f"{node_ns.strip('/').replace('/', '_')}_force_publisher"
 
 
 def record_main(out, node_ns="/mdss", colliders=(), clock_volatile=False, report_matches=False):
@@ -244,8 +251,15 @@ def clock_master_main(dt, rtf, until, nodes, wait=120.0):
         while not stop.is_set():
             time.sleep(0.1)
     finally:
+        # Every tick is out; a DDS teardown that hangs (Fast DDS, seen once in CI) must not
+        # keep run_scene waiting 30 s and then fail a run whose work is done.
+        watchdog = threading.Timer(TEARDOWN_S, lambda: (log(f"DDS teardown did not finish in {TEARDOWN_S:g} s: "
+                                                            "exiting without it"), os._exit(code)))
+        watchdog.daemon = True
+        watchdog.start()
         node.destroy_node()
         rclpy.try_shutdown()
+        watchdog.cancel()
     return code
 
 
@@ -752,8 +766,11 @@ def run_bodies(args, bodies, clock):
                     # with (follow) the first ticks.
                     # the recorders too: a tick sent before a recorder matched would be missing
                     # from its recording
-                    wait_for = [b.name for b in bodies] + ([recorder_name(b.name) for b in bodies]
-                                                           if args.record else [])
+                    # and the timeline publishers: one whose /clock subscription matches late
+                    # in the run publishes its inputs late or never (seen under load: a 1 s
+                    # run ended before its t = 0.5 s wrench went out)
+                    wait_for = ([b.name for b in bodies] + [timeline_name(b.name) for b in bodies if timelines[b.name]]
+                                + ([recorder_name(b.name) for b in bodies] if args.record else []))
                     master_proc = start("clock", [me, "--clock-master-process", "--dt", repr(dt), "--rtf", repr(rtf),
                                                   "--until", repr(duration), "--nodes", ",".join(wait_for)],
                                         marks=[(MASTER_DONE_MARK, master_done)])
@@ -791,11 +808,14 @@ def run_bodies(args, bodies, clock):
     finally:
         if clock_watch is not None:
             clock_watch.close()
-        # The recorders stop last, once everything they record has exited: what the nodes
-        # publish up to their end (the last /diagnostics) is in the recordings.
-        for group in ([x for x in procs if not x[0].endswith("/recorder")],
-                      [x for x in procs if x[0].endswith("/recorder")]):
-            code = stop_processes(group, code)
+        # The recorders stop once everything they record has exited: what the nodes publish
+        # up to their end (the last /diagnostics) is in the recordings. The clock master
+        # stops after them, when no subscriber of its reliable /clock writer is left: once
+        # (CI, session 14) its DDS teardown, with both recorders still subscribed, hung until
+        # it was killed 30 s later.
+        kind = lambda label: 2 if label == "clock" else 1 if label.endswith("/recorder") else 0
+        for k in range(3):
+            code = stop_processes([x for x in procs if kind(x[0]) == k], code)
         if watch.poll() is None:
             watch.send_signal(signal.SIGINT)
             try:

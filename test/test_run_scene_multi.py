@@ -129,9 +129,10 @@ def test_two_scenes_run_as_two_bodies_under_one_clock_master(tmp_path):
         args += ["--set", s]
     with Launch(tmp_path / "launch") as launch:
         run = launch.script("run_scene", "run_scene.py", *args)
-        # the master starts once both bodies and both recorders subscribed /clock
-        run.wait_for(r"clock master: 4 node\(s\) subscribed \(cantilever, cantilever_2, cantilever_2_recorder, "
-                     r"cantilever_recorder\)", timeout=300)
+        # the master starts once both bodies, both timeline publishers and both recorders
+        # subscribed /clock
+        run.wait_for(r"clock master: 6 node\(s\) subscribed \(cantilever, cantilever_2, cantilever_2_force_publisher, "
+                     r"cantilever_2_recorder, cantilever_force_publisher, cantilever_recorder\)", timeout=300)
         code = run.wait(timeout=120)
         launch.stop_all(expect=0)
     assert code == 0, run.tail(60)
