@@ -10,7 +10,9 @@ PAD_CELLS cells or PAD_FRACTION of the largest extent, whichever is larger, and 
 most MAX_CELLS nodes (a finer `resolution` is a SceneError naming the key).
 
 Build (once; kept in the precompute cache, stage "collider_sdf"): phi at every grid node
-by libigl's `signed_distance` with the generalised winding number as its sign. Why libigl:
+by libigl's exact point-to-triangle distance with the generalised winding number as its
+sign (mesh/distance.py: not igl.signed_distance, whose magnitudes are wrong at some points
+in the pinned version). Why libigl:
 it is a well-kept geometry library with an exact point-to-triangle distance on an AABB
 tree, and its winding-number sign is exact for any closed mesh, convex or not (a pseudo-
 normal sign can flip near sharp non-convex creases, which would make phantom contacts in a
@@ -30,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from ..mesh.distance import signed_distance
 
 EXTENSIONS = (".obj", ".stl", ".ply")
 KEYS = ("file", "scale", "resolution")
@@ -112,13 +115,12 @@ def grid_layout(where, vertices, resolution=None):
 
 
 def sample_sdf(vertices, faces, origin, h, counts):
-    """phi (nx, ny, nz) at the grid nodes, negative inside (libigl, winding-number sign)."""
-    import igl
-
+    """phi (nx, ny, nz) at the grid nodes, negative inside (mesh/distance.py: libigl's exact
+    distance, winding-number sign)."""
     axes = [origin[k] + h * np.arange(counts[k]) for k in range(3)]
     nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    phi = igl.signed_distance(nodes, vertices, faces, igl.SIGNED_DISTANCE_TYPE_WINDING_NUMBER)[0]
-    return np.asarray(phi, dtype=np.float64).reshape(tuple(int(c) for c in counts))
+    phi, _ = signed_distance(nodes, vertices, faces)
+    return phi.reshape(tuple(int(c) for c in counts))
 
 
 class MeshSDF:
@@ -164,7 +166,8 @@ class MeshSDF:
 
 
 def _code():
-    return Path(__file__).read_text()
+    # the distance module too: a grid built by an older one is built again
+    return Path(__file__).read_text() + (Path(__file__).parents[1] / "mesh" / "distance.py").read_text()
 
 
 def build_mesh_sdf(where, spec, base_dir=None, cache=None, memo=None):
