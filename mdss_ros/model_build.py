@@ -24,7 +24,10 @@ def build_model(scene, body, progress=None, cache=None):
         return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
                             progress=progress, cache=cache, contact_vertices=contact_candidates(scene, body, model))
     if kind == "meshless":
-        from .meshless.model import MeshlessModel
+        from .meshless.model import LatticeMeshlessModel, MeshlessModel
+        if model["meshless"]["nodes"] == "lattice":
+            return LatticeMeshlessModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
+                                        settings=model["meshless"], solver=model["solver"], pins=scene["pins"])
         return MeshlessModel(body, scene.dt, model["integrator"], scene["body"]["damping"],
                              settings=model["meshless"], solver=model["solver"])
     raise SceneError(f"{scene.source}: model.kind: {kind!r} is not available in this version "

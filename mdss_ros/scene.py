@@ -91,6 +91,14 @@ def _support_scale(value, where):
     return float(value)
 
 
+def _spacing(value, where):
+    if value == "auto":
+        return value
+    if not isinstance(value, _NUM) or isinstance(value, bool) or not 0 < value < float("inf"):
+        raise SceneError(f"{where}: expected 'auto' or a lattice spacing in metres (> 0), got {value!r}")
+    return float(value)
+
+
 def _substeps(value, where):
     return value if value == "auto" else _posint(value, where)
 
@@ -163,6 +171,10 @@ SCHEMA = {
             "stabilisation": (_nonneg, 0.1),
             "volumes": (_choice("mesh", "support"), "mesh"),
             "tet_barrier": (_bool, True),
+            # nodes: the mesh's vertices, or a cubic lattice of edge `spacing` (m; auto: about
+            # as many nodes as the mesh has vertices) clipped to the body (meshless/nodes.py)
+            "nodes": (_choice("mesh", "lattice"), "mesh"),
+            "spacing": (_spacing, "auto"),
         },
         # The stability guard (mdss_ros/guard.py): checks every step, rolls back and retries
         # a diverging one with more Newton iterations and sub-steps.

@@ -338,7 +338,8 @@ def test_meshless_scene_keys_are_validated():
         load_scene(base, {"model.meshless.volumes": "voronoi"})
     assert s["model"]["meshless"] == {"neighbours": 16, "support_scale": 2.0, "volume_stiffness": 0.1,
                                       "integrator": "implicit", "substeps": "auto", "integration": "consistent",
-                                      "stabilisation": 0.1, "volumes": "mesh", "tet_barrier": True}
+                                      "stabilisation": 0.1, "volumes": "mesh", "tet_barrier": True,
+                                      "nodes": "mesh", "spacing": "auto"}
     # Too small a support: the nodes without 3 weighted neighbours get neighbours chosen over
     # the octants (and so larger supports); at 0.1 x the mean distance even those stay empty.
     b = Simulator(_scene(support_scale=0.5)).model.build

@@ -71,8 +71,12 @@ class BackwardEuler:
         from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis, warm_start
         from ..contact.unilateral import find_contacts
         m, dt = self.model, self.dt
+        emb = getattr(m, "embedding", None)
+        # Mesh vertices that are not the unknowns (meshless lattice nodes) are moved by the
+        # nodes: contacts are found at the vertices, and act on their nodes.
+        P, Pv = (x, v) if emb is None else (emb.apply(x), emb.apply(v))
         ids = contact["vertices"]
-        verts, which, phi, normals = find_contacts(contact["colliders"], x[ids], x[ids] + dt * v[ids],
+        verts, which, phi, normals = find_contacts(contact["colliders"], P[ids], P[ids] + dt * Pv[ids],
                                                    contact["margin"])
         verts = ids[verts]
         # A contact is a weighted point of up to three vertices: a vertex (weights 1, 0, 0)
@@ -80,12 +84,8 @@ class BackwardEuler:
         corners = np.repeat(verts[:, None], 3, axis=1)
         weights = np.zeros((len(verts), 3))
         weights[:, 0] = 1.0
-        # A pinned vertex cannot be pushed out: its constraint would be infeasible.
-        keep = (m.pattern.free_dof[3 * verts[:, None] + np.arange(3)] >= 0).all(axis=1)
-        verts, which, phi, normals, corners, weights = (a[keep] for a in (verts, which, phi, normals, corners,
-                                                                          weights))
         if contact.get("triangles") is not None:
-            t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], x[ids],
+            t_idx, bary, t_which, t_phi, t_n = find_triangle_contacts(contact["colliders"], P[ids],
                                                                       contact["triangles"], contact["margin"])
             if len(t_idx):
                 t_corners = ids[contact["triangles"][t_idx]]                 # (k, 3) global ids
@@ -94,6 +94,13 @@ class BackwardEuler:
                 which, phi = np.concatenate([which, t_which]), np.concatenate([phi, t_phi])
                 normals = np.concatenate([normals, t_n])
                 corners, weights = np.concatenate([corners, t_corners]), np.concatenate([weights, bary])
+        if emb is not None:
+            corners, weights = emb.corners(corners, weights)
+        # A point on pinned vertices (nodes) alone cannot be pushed out: its constraint
+        # would be infeasible.
+        keep = ((m.pattern.free_dof[3 * corners] >= 0) & (weights != 0.0)).any(axis=1)
+        verts, which, phi, normals, corners, weights = (a[keep] for a in (verts, which, phi, normals, corners,
+                                                                          weights))
         C = self._rows_along(normals[:, None, :], corners, weights)
         friction = None
         mu = coefficients(contact, which)
@@ -102,22 +109,29 @@ class BackwardEuler:
             C3 = self._rows_along(np.concatenate([normals[:, None, :], tangents], axis=1), corners, weights)
             g3 = np.zeros((len(verts), 3))
             g3[:, 0] = phi
-            g3[:, 1:] = collider_slip(contact, which, x[verts], tangents)
+            g3[:, 1:] = collider_slip(contact, which, P[verts], tangents)
             n_col = len(contact["colliders"])
             keys, previous = verts * n_col + which, contact.get("previous")
             friction = (C3, g3.ravel(), effective_mu(*mu, keys, previous, n_col), tangents,
                         warm_start(previous, keys, tangents, n_col))
         return verts, C, phi, normals, which, friction
 
+    def points(self, x):
+        """The mesh vertices' positions (n_verts, 3) from the unknowns' x: x itself, or the
+        vertices the meshless lattice's nodes move (the force model's embedding)."""
+        emb = getattr(self.model, "embedding", None)
+        return x if emb is None else emb.apply(x)
+
     def _rows_along(self, directions, corners, weights):
         """Rows (k r, n_free) CSR, row l r + j = dt d_lj^T sum_a w_la (DOFs of vertex a)
-        for directions (k, r, 3), corners (k, 3) vertex ids, weights (k, 3); pinned DOFs
-        and zero weights are left out."""
+        for directions (k, r, 3), corners (k, c) vertex (node) ids, weights (k, c); pinned
+        DOFs and zero weights are left out."""
         m, dt = self.model, self.dt
         k, r = directions.shape[:2]
-        dofs = m.pattern.free_dof[3 * corners[:, :, None] + np.arange(3)]         # (k, 3, 3) corner, axis
-        rows = np.broadcast_to((np.arange(k)[:, None] * r + np.arange(r))[:, :, None, None], (k, r, 3, 3))
-        cols = np.broadcast_to(dofs[:, None], (k, r, 3, 3))
+        c = corners.shape[1]
+        dofs = m.pattern.free_dof[3 * corners[:, :, None] + np.arange(3)]         # (k, c, 3) corner, axis
+        rows = np.broadcast_to((np.arange(k)[:, None] * r + np.arange(r))[:, :, None, None], (k, r, c, 3))
+        cols = np.broadcast_to(dofs[:, None], (k, r, c, 3))
         vals = dt * weights[:, None, :, None] * directions[:, :, None, :]
         ok = (cols >= 0) & (vals != 0.0)
         return sp.csr_matrix((vals[ok], (rows[ok], cols[ok])), shape=(k * r, m.n_free))
@@ -223,7 +237,7 @@ class BackwardEuler:
         v_new = m.expand(vk)
         x_new = x + dt * v_new
         if rows is not None:
-            self.contact = contact_record(contact["colliders"], rows, lam, x_new, lcp.get("w"), dt)
+            self.contact = contact_record(contact["colliders"], rows, lam, self.points(x_new), lcp.get("w"), dt)
         self.stats = {
             "newton_iterations": iterations,
             "converged": bool(converged or s.max_iterations == 1),

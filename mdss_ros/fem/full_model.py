@@ -17,6 +17,15 @@ class VertexState:
     Needs body, vertex_mass, force_model (energy(x), n_free) and integrator (dt, step(x, v,
     f_ext, contact) -> (x, v), stats, contact: BackwardEuler or meshless.explicit.RK4)."""
 
+    # Unknowns that are not the mesh's vertices (the meshless lattice's nodes) move them
+    # through an embedding (meshless/embedding.py); None: the vertices are the unknowns.
+    embedding = None
+
+    @property
+    def state_mass(self):
+        """Masses (n,) of the unknowns x: the vertices' lumped masses here."""
+        return self.vertex_mass
+
     def reset(self):
         self.x = self.body.vertices.copy()
         self.v = np.zeros_like(self.x)
@@ -49,8 +58,10 @@ class VertexState:
         if isinstance(f_ext, VertexLoads):
             f_ext = f_ext.dense()            # every vertex is an unknown here anyway
         f_ext = np.asarray(f_ext, dtype=np.float64)
+        if self.embedding is not None:
+            f_ext = self.embedding.spread(f_ext, len(self.x))      # the same virtual work on the nodes
         if gravity is not None:
-            f_ext = f_ext + self.vertex_mass[:, None] * np.asarray(gravity)[None, :]
+            f_ext = f_ext + self.state_mass[:, None] * np.asarray(gravity)[None, :]
         integ = self.integrator
         settings = getattr(integ, "settings", None)
         saved = (integ.dt, getattr(settings, "max_iterations", None))

@@ -122,7 +122,7 @@ class RK4(BackwardEuler):
                 xf = xf + dt * corr
                 x_new.reshape(-1)[m.pattern.free_dof >= 0] = xf
                 v_new = m.expand(vf)
-                self.contact = contact_record(contact["colliders"], rows, lam, x_new, lcp.get("w"), dt)
+                self.contact = contact_record(contact["colliders"], rows, lam, self.points(x_new), lcp.get("w"), dt)
         self.stats = {"newton_iterations": 0, "converged": True, "residual": 0.0, "projected": False,
                       "line_search_cuts": 0, "substeps": n_sub, "step_ms": 1e3 * (time.perf_counter() - t0)}
         if lcp:
