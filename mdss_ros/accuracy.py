@@ -159,12 +159,13 @@ def ground_truth(scene_src, base_overrides, dt, cfg, log, cache=None):
     """The full-space record at step dt: Newton iterated to truth_tolerance every step.
     cache: the PrecomputeCache the compared runs use. A surface-file body is tetrahedralised
     once per cache (fTetWild differs run to run), so the truth must read the same one."""
-    ov = dict(base_overrides, **{"model.kind": "full", "model.integrator.dt": float(dt),
+    ov = dict(base_overrides, **{"model.kind": "full", "model.element": cfg.get("truth_element", "linear"),
+                                 "model.integrator.dt": float(dt),
                                  "model.integrator.newton_iterations": int(cfg["truth_newton_iterations"]),
                                  "model.integrator.tolerance": float(cfg["truth_tolerance"])})
     scene = load_scene(scene_src, ov)
     sim = Simulator(scene, cache=cache)
-    log(f"ground truth at dt = {dt_label(dt)}: full space, {sim.stats()['dofs']} DOFs, Newton to "
+    log(f"ground truth at dt = {dt_label(dt)}: full space ({ov['model.element']} tets), {sim.stats()['dofs']} DOFs, Newton to "
         f"{cfg['truth_tolerance']:g} (at most {cfg['truth_newton_iterations']} iterations), "
         f"{cfg['horizon']:.3g} s of the timeline")
     t0 = time.perf_counter()

@@ -519,8 +519,9 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="a few configurations over 1 s (the slow test)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="tradeoff.NAME=V changes a study setting (horizon, warmup, probe_every, "
-                        "truth_newton_iterations, truth_tolerance, variants, peers, peers_only: the MuJoCo "
-                        "peer comparison alone); other keys override the scene")
+                        "truth_newton_iterations, truth_tolerance, truth_element (linear | quadratic tets), "
+                        "variants, peers, peers_only: the MuJoCo peer comparison alone); other keys override "
+                        "the scene")
     p.add_argument("--levels", metavar="LIST",
                    help="limbed body only (star_limbs): instead of the sweep, the static peer study at the load "
                         "levels LIST of small,medium,large (or all), one table and Pareto plot per level "

@@ -15,6 +15,11 @@ def build_model(scene, body, progress=None, cache=None):
     """The dynamics model of a scene (`model.kind`); progress(msg) hears long build steps."""
     model = model_config(scene)
     kind = model["kind"]
+    if model.get("element", "linear") == "quadratic":
+        if kind != "full":
+            raise SceneError(f"{scene.source}: model.element: quadratic is for model.kind: full (got {kind!r})")
+        from .fem.quadratic import QuadraticFullModel
+        return QuadraticFullModel(body, scene.dt, model["integrator"], scene["body"]["damping"], solver=model["solver"])
     if kind == "full":
         from .fem.full_model import FullSpaceModel
         return FullSpaceModel(body, scene.dt, model["integrator"], scene["body"]["damping"],

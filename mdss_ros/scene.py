@@ -128,6 +128,8 @@ SCHEMA = {
     "colliders": (dict, {}),
     "model": {
         "kind": (_choice("full", "reduced", "meshless", "auto"), "full"),    # auto: resolved on load
+        # full only: quadratic (10-node) tets, the bending-accurate truth (fem/quadratic.py)
+        "element": (_choice("linear", "quadratic"), "linear"),
         # No domains given: the product places them (reduced/auto_domains.py; a body
         # without limbs gets one domain, "core").
         "domains": (_any, {"auto": True}),

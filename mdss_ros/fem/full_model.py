@@ -180,6 +180,76 @@ class VertexState:
         return None
 
 
+class EmbeddedNodes:
+    """A VertexState whose unknowns x, v (n_nodes, 3) are nodes, not the mesh's vertices:
+    the vertices (output, loads, contacts, the guard's inverted tets) follow the nodes by
+    self.embedding (meshless/embedding.py). Mixed in before the model class; needs
+    node_rest (n_nodes, 3), node_pinned (p,) node ids, embedding, and the nodes' masses as
+    force_model.vertex_mass. vertex_mass stays the mesh's lumped vertex masses (what the
+    Simulator spreads a handle's wrench by)."""
+
+    @property
+    def state_mass(self):
+        return self.force_model.vertex_mass
+
+    def reset(self):
+        self.x = self.node_rest.copy()
+        self.v = np.zeros_like(self.x)
+        self.contact = None
+
+    def vertex_positions(self):
+        return self.embedding.apply(self.x)
+
+    def vertex_velocities(self):
+        return self.embedding.apply(self.v)
+
+    def positions_of(self, ids):
+        return self.embedding.apply(self.x, ids)
+
+    def set_state(self, x, v=None):
+        if not isinstance(x, dict):
+            raise ValueError(f"set_state(x, v): the mesh vertices of this {self.kind} model follow its nodes and "
+                             "cannot be set one by one; pass a get_state() snapshot")
+        super().set_state(x)
+
+    def set_rigid_velocity(self, linear, angular, center=None):
+        m = self.state_mass
+        if center is None:
+            center = (m[:, None] * self.x).sum(0) / m.sum()
+        self.v = np.asarray(linear, float) + np.cross(np.asarray(angular, float), self.x - center)
+        self.v[self.node_pinned] = 0.0
+
+    def domain_poses(self):
+        return best_fit_pose(self.node_rest, self.x, self.state_mass)[None, :]
+
+    def guard_measure(self, gravity, check_inversion=True):
+        """As VertexState's, with the energies of the nodes (the inverted tets those of
+        the mesh the nodes move)."""
+        with np.errstate(all="ignore"):
+            x, v = self.vertex_positions(), self.vertex_velocities()
+            if not (np.isfinite(self.x).all() and np.isfinite(self.v).all()):
+                return Measure(x, v, np.nan, np.nan, np.nan, len(self.body.tets), False)
+            m = self.state_mass
+            kinetic = self.kinetic_energy()
+            try:
+                elastic = float(self.elastic_energy())
+            except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError):
+                elastic = np.nan
+            grav = -float((m * (self.x @ gravity)).sum())
+            inverted = inverted_tets(x, self.body.tets) if check_inversion else 0
+        return Measure(x, v, kinetic, elastic, grav, inverted, bool(np.isfinite([kinetic, elastic, grav]).all()))
+
+    def mean_motion(self):
+        m = self.state_mass
+        if self.node_pinned.size:
+            return float(m.sum()), np.zeros(3)
+        return float(m.sum()), (m[:, None] * self.v).sum(0) / m.sum()
+
+    def scale_relative_motion(self, s, V):
+        self.v = V + s * (self.v - V)
+        self.v[self.node_pinned] = 0.0
+
+
 class FullSpaceModel(VertexState):
     """State x, v (n_verts, 3). step(f_ext) advances by dt with backward Euler."""
 

@@ -30,12 +30,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..fem.backward_euler import BackwardEuler, NewtonSettings
-from ..fem.full_model import VertexState, best_fit_pose
+from ..fem.full_model import EmbeddedNodes, VertexState
 from ..fem.mass import lumped_mass
 from ..mesh.distance import signed_distance
 from ..mesh.selectors import select_vertices
 from ..mesh.tetmesh import signed_volumes
-from ..state_measure import Measure, inverted_tets
 from .embedding import Embedding, shape_functions
 from .explicit import RK4, auto_substeps, max_frequency
 from .forces import MeshlessForces
@@ -230,7 +229,7 @@ def build_lattice(body, cfg, pins=()):
     return Lattice(h, X, V, pinned.astype(np.int64), emb, boundary)
 
 
-class LatticeMeshlessModel(MeshlessModel):
+class LatticeMeshlessModel(EmbeddedNodes, MeshlessModel):
     """`model.meshless.nodes: lattice`: the unknowns x, v (n_nodes, 3) are the nodes of a
     regular lattice clipped to the body (nodes.py); the mesh's vertices (output, loads,
     contacts, the guard's inverted tets) move by the nodes' MLS interpolation
@@ -252,65 +251,12 @@ class LatticeMeshlessModel(MeshlessModel):
                                                                1.0, len(body.vertices))
 
     @property
-    def state_mass(self):
-        return self.force_model.vertex_mass
+    def node_rest(self):
+        return self.lattice.X
 
-    def reset(self):
-        self.x = self.lattice.X.copy()
-        self.v = np.zeros_like(self.x)
-        self.contact = None
-
-    def vertex_positions(self):
-        return self.embedding.apply(self.x)
-
-    def vertex_velocities(self):
-        return self.embedding.apply(self.v)
-
-    def positions_of(self, ids):
-        return self.embedding.apply(self.x, ids)
-
-    def set_state(self, x, v=None):
-        if not isinstance(x, dict):
-            raise ValueError("set_state(x, v): the mesh vertices of a meshless lattice model follow its nodes and "
-                             "cannot be set one by one; pass a get_state() snapshot")
-        super().set_state(x)
-
-    def set_rigid_velocity(self, linear, angular, center=None):
-        m = self.state_mass
-        if center is None:
-            center = (m[:, None] * self.x).sum(0) / m.sum()
-        self.v = np.asarray(linear, float) + np.cross(np.asarray(angular, float), self.x - center)
-        self.v[self.lattice.pinned] = 0.0
-
-    def domain_poses(self):
-        return best_fit_pose(self.lattice.X, self.x, self.state_mass)[None, :]
-
-    def guard_measure(self, gravity, check_inversion=True):
-        """As VertexState's, with the energies of the nodes (the inverted tets those of
-        the mesh the nodes move)."""
-        with np.errstate(all="ignore"):
-            x, v = self.vertex_positions(), self.vertex_velocities()
-            if not (np.isfinite(self.x).all() and np.isfinite(self.v).all()):
-                return Measure(x, v, np.nan, np.nan, np.nan, len(self.body.tets), False)
-            m = self.state_mass
-            kinetic = self.kinetic_energy()
-            try:
-                elastic = float(self.elastic_energy())
-            except (ArithmeticError, ValueError, RuntimeError, np.linalg.LinAlgError):
-                elastic = np.nan
-            grav = -float((m * (self.x @ gravity)).sum())
-            inverted = inverted_tets(x, self.body.tets) if check_inversion else 0
-        return Measure(x, v, kinetic, elastic, grav, inverted, bool(np.isfinite([kinetic, elastic, grav]).all()))
-
-    def mean_motion(self):
-        m = self.state_mass
-        if self.lattice.pinned.size:
-            return float(m.sum()), np.zeros(3)
-        return float(m.sum()), (m[:, None] * self.v).sum(0) / m.sum()
-
-    def scale_relative_motion(self, s, V):
-        self.v = V + s * (self.v - V)
-        self.v[self.lattice.pinned] = 0.0
+    @property
+    def node_pinned(self):
+        return self.lattice.pinned
 
     def _nodes_said(self):
         lat = self.lattice
