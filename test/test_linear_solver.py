@@ -44,3 +44,35 @@ def test_close_releases_the_factorisation_and_the_solver_factors_again(monkeypat
     np.testing.assert_allclose(s.factor(sp.identity(3, format="csr") * 2.0).solve(np.ones(3)), 0.5 * np.ones(3))
     del s                                        # __del__ frees the new factorisation too
     assert freed == [True, True]
+
+
+def _laplacian_3d(n, shift=0.0):
+    """SPD 7-point Laplacian on an n^3 grid (+ shift I), CSR."""
+    one = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    eye = sp.identity(n)
+    L = sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one)
+    return (L + shift * sp.identity(n ** 3)).tocsr()
+
+
+def test_pardiso_analyses_a_pattern_once_and_solves_every_new_matrix_on_it():
+    """A model's stiffness keeps its pattern: the analysis (ordering, symbolic factor) runs
+    once, every numeric factorisation after it reuses it, and each solve is the new
+    matrix's. A new pattern, or a failed factorisation (its memory released), analyses again."""
+    s = SparseSolver("pardiso")
+    rng = np.random.default_rng(0)
+    b = rng.standard_normal(8 ** 3)
+    for k, shift in enumerate((0.1, 0.5, 2.0)):
+        A = _laplacian_3d(8, shift)
+        s.factor(A)
+        x = s.solve(b)
+        assert np.linalg.norm(A @ x - b) < 1e-12 * np.linalg.norm(b)
+        assert s.analyses == 1
+    s.factor(_laplacian_3d(7, 0.1))                       # another pattern
+    assert s.analyses == 2
+    with pytest.raises(NotPositiveDefinite):
+        s.factor(_laplacian_3d(7, -20.0))                 # same pattern, not positive definite
+    A = _laplacian_3d(7, 0.3)
+    s.factor(A)
+    assert s.analyses == 3
+    x = s.solve(b[:7 ** 3])
+    assert np.linalg.norm(A @ x - b[:7 ** 3]) < 1e-12 * np.linalg.norm(b[:7 ** 3])
