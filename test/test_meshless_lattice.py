@@ -11,7 +11,6 @@ import trimesh
 from mdss_ros import Simulator
 from mdss_ros.body import build_body
 from mdss_ros.errors import SceneError
-from mdss_ros.linear_solver import SparseSolver
 from mdss_ros.mesh import box
 from mdss_ros.mesh.surface import boundary_faces
 from mdss_ros.meshless.embedding import Embedding, shape_functions
@@ -21,6 +20,7 @@ from mdss_ros.meshless.nodes import MIN_GAP, lattice_nodes, lattice_volumes
 from mdss_ros.model_build import build_model
 from mdss_ros.scene import load_scene
 from mdss_ros.verify.closed_forms import cantilever_gravity_sag
+from test_meshless import newton_static, pressed_block
 
 
 def _beam_scene(L=0.5, cell=0.025, E=1e8, spacing="auto", gravity=(0, 0, -9.81), pins=True, **meshless):
@@ -112,15 +112,7 @@ def _lattice_static_sag(L, cell, E, spacing):
     model = build_model(scene, body)
     fm, emb = model.force_model, model.embedding
     f_ext = fm.vertex_mass[:, None] * np.array([0.0, 0.0, -9.81])      # the nodes' masses
-    x = fm.X.copy()
-    solver = SparseSolver()
-    for _ in range(10):
-        _, f, K_data = fm.tangent(x)
-        r = fm.free(f_ext - f)
-        if np.linalg.norm(r) < 1e-10 * np.linalg.norm(fm.free(f_ext)):
-            break
-        solver.factor(fm.pattern.matrix(K_data))
-        x = x + fm.expand(solver.solve(r))
+    x = newton_static(fm, fm.X, f_ext)
     xv = emb.apply(x)
     tip = np.abs(body.vertices[:, 0] - L) < 1e-9
     pin_move = np.abs(xv[body.pinned] - body.vertices[body.pinned]).max()
@@ -190,21 +182,7 @@ def test_lattice_block_pressed_by_a_sphere_pushes_back_like_the_mesh_nodes():
     (the same nodes up to the MLS interpolation of the surface; measured 19.8 N against
     20.5 N)."""
     def run(nodes):
-        scene = {"name": "block",
-                 "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.05,
-                                   "origin": [-0.1, -0.1, 0.0]},
-                          "material": {"model": "stvk", "young": 1e5, "poisson": 0.3, "density": 1000},
-                          "damping": {"alpha": 5.0, "beta": 0.0}},
-                 "pins": [{"box": [[-1, -1, -1e-6], [1, 1, 1e-6]]}],
-                 "colliders": {"ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.2]}},
-                 "gravity": [0, 0, 0],
-                 "model": {"kind": "meshless", "integrator": {"dt": 0.01, "newton_iterations": 2},
-                           "meshless": {"nodes": nodes, "spacing": 0.05}}}
-        sim = Simulator(scene)
-        for k in range(30):
-            sim.set_collider_pose("ball", (0, 0, 0.14 - 0.005 * min(1, (k + 1) / 20)))
-            sim.step()
-        return sim
+        return pressed_block({"nodes": nodes, "spacing": 0.05})
     lat, ref = run("lattice"), run("mesh")
     w, w_ref = lat.collider_wrench("ball"), ref.collider_wrench("ball")
     assert w[2] > 0 and abs(w[0]) < 0.02 * w[2] and abs(w[1]) < 0.02 * w[2], w

@@ -9,11 +9,11 @@ from mdss_ros import Simulator
 from mdss_ros.body import build_body
 from mdss_ros.errors import SceneError
 from mdss_ros.fem.quadratic import hrz_masses, quadratic_mesh, shape_gradients
-from mdss_ros.linear_solver import SparseSolver
 from mdss_ros.mesh import box
 from mdss_ros.model_build import build_model
 from mdss_ros.scene import load_scene
 from mdss_ros.verify.closed_forms import cantilever_gravity_sag
+from test_meshless import newton_static
 
 
 def _beam(L=0.5, cell=0.05, element="quadratic", material="stvk", pins=True):
@@ -87,16 +87,7 @@ def test_quadratic_beam_sags_as_the_closed_form_where_linear_tets_lock():
         body = build_body(scene)
         model = build_model(scene, body)
         fm = model.force_model
-        x = model.node_rest.copy() if element == "quadratic" else body.vertices.copy()
-        f_ext = fm.vertex_mass[:, None] * np.array([0.0, 0.0, -9.81])
-        solver = SparseSolver()
-        for _ in range(10):
-            _, f, K = fm.tangent(x)
-            r = fm.free(f_ext - f)
-            if np.linalg.norm(r) < 1e-10 * np.linalg.norm(fm.free(f_ext)):
-                break
-            solver.factor(fm.pattern.matrix(K))
-            x = x + fm.expand(solver.solve(r))
+        x = newton_static(fm, fm.X, fm.vertex_mass[:, None] * np.array([0.0, 0.0, -9.81]))
         tip = np.abs(body.vertices[:, 0] - 0.5) < 1e-9
         sags[element] = -(x[:len(body.vertices)][tip, 2] - body.vertices[tip, 2]).mean() / ref - 1.0
     assert abs(sags["quadratic"]) < 0.04, sags
