@@ -171,7 +171,7 @@ SCHEMA = {
             "substeps": (_substeps, "auto"),
             "integration": (_choice("consistent", "nodal"), "consistent"),
             "stabilisation": (_nonneg, 0.1),
-            "volumes": (_choice("mesh", "support"), "mesh"),
+            "volumes": (_choice("mesh", "support", "kernel"), "mesh"),
             "tet_barrier": (_bool, True),
             # nodes: the mesh's vertices, or a cubic lattice of edge `spacing` (m; auto: about
             # as many nodes as the mesh has vertices) clipped to the body (meshless/nodes.py)

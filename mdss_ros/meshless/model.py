@@ -39,7 +39,7 @@ from .embedding import Embedding, shape_functions
 from .explicit import RK4, auto_substeps, max_frequency
 from .forces import MeshlessForces
 from .integration import boundary_vectors, consistent_coefficients, stabilisation_matrices
-from .mls import conditions, gradient_operator
+from .mls import conditions, gradient_operator, kernel
 from .neighbourhoods import find_neighbourhoods, grow
 from .nodes import lattice_nodes, lattice_volumes, surface_quadrature
 
@@ -86,8 +86,11 @@ def build_forces(X, tets, triangles, material, settings, pinned=(), volumes=None
         grown[bad] = True
         nb = grow(X, nb, bad, cfg["support_scale"], round_)
     op = gradient_operator(X, nb.nbr, nb.h)
+    mass = None
     if volumes is not None:
         V = np.asarray(volumes, dtype=np.float64)
+    elif cfg["volumes"] == "kernel":
+        V, mass = kernel_volumes(X, nb, material.density)
     elif cfg["volumes"] == "mesh":
         # The tet mesh's lumped vertex volumes (a quarter of each tet's): a partition of
         # the body, so boundary nodes get their share and no more (docs/method.md §19.4).
@@ -107,9 +110,31 @@ def build_forces(X, tets, triangles, material, settings, pinned=(), volumes=None
     # The FEM materials' compression barrier (docs/method.md §3.4) on the nodal J, same keys.
     kb = float(getattr(material, "barrier", 0.0)) * material.mu
     jb = float(getattr(material, "barrier_j", 0.2))
-    forces = MeshlessForces(X, op, V, material.density * V, material.mu, material.lam, kv, pinned, S, kb, jb,
+    forces = MeshlessForces(X, op, V, material.density * V if mass is None else mass, material.mu, material.lam, kv, pinned, S, kb, jb,
                             tets if cfg["tet_barrier"] and tets is not None else None)
     return forces, Build(nb, int(grown.sum()), int((op.cond > COND_LIMIT).sum()), residual)
+
+
+#: integral of the kernel w(|x|) over the unit ball: 4 pi (1/3 - 3/5 + 1/3)
+KERNEL_INTEGRAL = 4.0 * np.pi / 15.0
+
+
+def kernel_volumes(X, nb, density):
+    """(V (n,), m (n,)) by [HZ] eqs. 1-3 (`volumes: kernel`): masses m_i = s rho rbar_i^3,
+    densities rho_i = sum_j m_j W(|X_j - X_i|, h_i) over every node within the support h_i
+    (not only the k neighbours: a support of 2 rbar holds about twice as many), with the
+    kernel normalised to unit integral, W = w(r / h) / (KERNEL_INTEGRAL h^3), s such that the
+    mean of rho_i is rho ([HZ]: "so that the average of the assigned densities is close to
+    the actual material density"), and volumes V_i = m_i / rho_i (Mueller et al. 2004). The
+    masses need not sum to rho V_mesh (the explain line says by how much)."""
+    r3 = nb.rbar ** 3
+    pairs = cKDTree(X).query_pairs(float(nb.h.max()), output_type="ndarray")
+    i, j = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+    W = kernel(np.linalg.norm(X[j] - X[i], axis=1) / nb.h[i]) / (KERNEL_INTEGRAL * nb.h[i] ** 3)
+    rho1 = r3 / (KERNEL_INTEGRAL * nb.h ** 3) + np.bincount(i, weights=r3[j] * W, minlength=len(X))
+    s = 1.0 / rho1.mean()                                   # rho_i = s rho rho1_i
+    m = s * density * r3
+    return m / (s * density * rho1), m
 
 
 class MeshlessModel(VertexState):
@@ -186,7 +211,12 @@ class MeshlessModel(VertexState):
         return "the mesh vertices"
 
     def _volumes_said(self):
-        return "the tet mesh vertex volumes" if self.settings["volumes"] == "mesh" else "[HZ] eq. 2 support volumes"
+        v = self.settings["volumes"]
+        if v == "kernel":
+            m = float(self.force_model.vertex_mass.sum())
+            return (f"[HZ] eqs. 1-3 kernel densities and volumes (total mass {m:.4g} kg, "
+                    f"{m / (self.body.material.density * float(self.force_model.V.sum())):.3f} x rho sum V)")
+        return "the tet mesh vertex volumes" if v == "mesh" else "[HZ] eq. 2 support volumes"
 
 
 @dataclass(frozen=True)
