@@ -38,6 +38,7 @@ from ..meshless.forces import MeshlessForces
 from ..meshless.mls import GradientOperator
 from ..mesh.tetmesh import signed_volumes
 from .backward_euler import BackwardEuler, NewtonSettings
+from .elements import tet_geometry
 from .full_model import EmbeddedNodes, VertexState
 from .mass import lumped_mass
 
@@ -62,15 +63,9 @@ def quadratic_mesh(vertices, tets):
 def shape_gradients(nodes, elements):
     """(c (4 t, 10, 3), weights (4 t,)): grad N of the 10 nodes at each quadrature point and
     the point's volume weight (V_tet / 4), rows ordered tet-major."""
-    X = np.asarray(nodes, dtype=np.float64)
     T = np.asarray(elements, dtype=np.int64)
-    corners = X[T[:, :4]]
-    Dm = (corners[:, 1:] - corners[:, :1]).transpose(0, 2, 1)       # (t, 3, 3), columns = edges
-    Dinv = np.linalg.inv(Dm)
-    gL = np.empty((len(T), 4, 3))
-    gL[:, 1:] = Dinv                                                # grad L_a, a = 1..3: rows of Dm^-1
-    gL[:, 0] = -Dinv.sum(axis=1)
-    vol = np.abs(np.linalg.det(Dm)) / 6.0
+    geo = tet_geometry(nodes, T[:, :4])                             # grad L_a (t, 4, 3): the linear tet's
+    gL, vol = geo.grads, geo.volume
     L = QUAD_L                                                      # (q, 4)
     c = np.empty((len(T), 4, 10, 3))
     c[:, :, :4] = (4.0 * L - 1.0)[None, :, :, None] * gL[:, None, :, :]

@@ -92,15 +92,6 @@ def lattice_volumes(X, vertices, triangles, spacing, body_volume):
     return vol * (float(body_volume) / vol.sum())
 
 
-def default_spacing(vertices, tets):
-    """The mean edge length of the tets (vertices (n, 3), tets (t, 4)): a lattice of about
-    as many nodes as the mesh has vertices."""
-    X = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(tets, dtype=np.int64)
-    edges = np.concatenate([t[:, [a, b]] for a in range(4) for b in range(a + 1, 4)])
-    return float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
-
-
 def surface_quadrature(vertices, triangles, spacing):
     """(points (q, 3), area vectors (q, 3)) of a midpoint rule on the surface fine enough for
     nodes `spacing` apart: each triangle (vertices (v, 3), outward triangles (t, 3)) split
