@@ -72,6 +72,19 @@ def test_stability_quick_matrix(tmp_path):
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
 
 
+@pytest.mark.slow
+def test_stiff_spun_reduced_corner_recovers():
+    """The reduced corotated corner that failed runs 12 and earlier (E 1e11 Pa, nu 0, dt
+    1/30, spin 50, force x 1e3): Newton's plain direction raised the potential at every
+    line-search length and the loop took its shortest length anyway, 23 J -> 35,000 J in
+    one sub-step, every rung failed (reduced/step.py, Step._line_search). About 40 s."""
+    from mdss_ros.verify.stability_study import ENERGY_BOUND, run_cell
+    r = run_cell("reduced", "corotated", {"young": 1e11, "poisson": 0.0, "dt": 1 / 30, "spin": 50.0,
+                                          "force": 1000.0}, 24)
+    assert r["status"] in ("stable", "recovered"), r
+    assert r["energy_created_ratio"] <= ENERGY_BOUND
+
+
 def test_observation_window_after_release():
     """A cell left inverted is observed on for up to OBSERVE_TRANSITS shear-wave transits
     after the release (capped): 0.28 s per transit for the 1 kPa, nu = 0 box."""

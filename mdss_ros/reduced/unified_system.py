@@ -113,6 +113,15 @@ class StepSystem:
         A_ff = (1.0 + dt * self.alpha) * self.model.M_ff + dt * self.beta * K0[2] + dt * dt * K_ff
         return A_ss, A_sI, A_ff
 
+    def shifted(self, A, mu):
+        """(A_ss, A_sI, A_ff) of matrix() plus mu Mgen, as new arrays: the damped Newton
+        matrix of step.py's line search."""
+        A_ss, A_sI, A_ff = A
+        A_ss = self.mass.add_to(A_ss.copy(), mu)
+        if A_ff is not None:
+            A_ff = A_ff + mu * self.model.M_ff
+        return A_ss, A_sI, A_ff
+
     def damping_dense(self):
         """Dgen's subspace part (S, S) dense (the two-step foil)."""
         D = self.alpha * self.mass.dense() + self.beta * self.K0[0]
