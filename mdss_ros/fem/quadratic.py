@@ -19,10 +19,11 @@ and F at each of 4 quadrature points (degree 2: exact for the linear-elastic sti
 
 That is F = sum_a x_{s_qa} c_qa^T over a stencil of 10 nodes, the algebra of the meshless
 model's nodal stencils: the energy, forces and stiffness are meshless.forces.MeshlessForces'
-on these stencils with k_v = 0 and no stabilisation, i.e. St. Venant-Kirchhoff plus the
-materials' compression barrier (§3.4). (The FEM's stvk also clamps singular values below
+on these stencils with k_v = 0 and no stabilisation: for `stvk` St. Venant-Kirchhoff plus
+the materials' compression barrier (§3.4) (the FEM's stvk also clamps singular values below
 0.5, Irving et al.; the quadratic model has no such clamp, so it is for moderate strain:
-a truth, not a default.)
+a truth, not a default); for `corotated` and `neohookean` the FEM's own point law
+(fem/materials.py, barrier included) at each quadrature point, evaluated in one batch.
 
 Mass: HRZ lumping (Hinton, Rock, Zienkiewicz 1976) of the consistent mass, which for a
 10-node tet gives rho V / 36 to each corner and 4 rho V / 27 to each edge node (row sums
@@ -92,9 +93,6 @@ class QuadraticFullModel(EmbeddedNodes, VertexState):
 
     def __init__(self, body, dt, integrator, damping, solver="auto"):
         material = body.material
-        if material.name != "stvk":
-            raise SceneError(f"model.element: quadratic supports the stvk material only (the body's is "
-                             f"{material.name!r}); use model.element: linear")
         self.body = body
         nodes, self.elements, edges = quadratic_mesh(body.vertices, body.tets)
         pinned = np.zeros(len(nodes), dtype=bool)
@@ -105,10 +103,18 @@ class QuadraticFullModel(EmbeddedNodes, VertexState):
         stencil = np.repeat(self.elements, 4, axis=0)                # (4 t, 10): each point's element
         op = GradientOperator(stencil=stencil, c=np.ascontiguousarray(c), weights=np.ones((len(c), 9)),
                               cond=np.ones(len(c)), floored=0)
-        self.force_model = MeshlessForces(nodes, op, w, hrz_masses(nodes, self.elements, material.density),
-                                          material.mu, material.lam, 0.0, self.node_pinned, None,
-                                          float(getattr(material, "barrier", 0.0)) * material.mu,
-                                          float(getattr(material, "barrier_j", 0.2)))
+        masses = hrz_masses(nodes, self.elements, material.density)
+        if material.name == "stvk":
+            # The meshless StVK (no singular-value clamp, see the module docstring), compiled.
+            self.force_model = MeshlessForces(nodes, op, w, masses, material.mu, material.lam, 0.0,
+                                              self.node_pinned, None,
+                                              float(getattr(material, "barrier", 0.0)) * material.mu,
+                                              float(getattr(material, "barrier_j", 0.2)))
+        else:
+            # The FEM's own point law (corotated, neo-Hookean with its barrier) at every
+            # quadrature point: the same material as a linear-tet model of the scene.
+            self.force_model = MeshlessForces(nodes, op, w, masses, material.mu, material.lam, 0.0,
+                                              self.node_pinned, material=material)
         n_v = len(body.vertices)
         self.embedding = self.force_model.embedding = Embedding(np.arange(n_v)[:, None], np.ones((n_v, 1)))
         self.embedding.n_nodes = len(nodes)
@@ -124,7 +130,8 @@ class QuadraticFullModel(EmbeddedNodes, VertexState):
         return 0.5 * float((self.state_mass * (self.v * self.v).sum(1)).sum())
 
     def explain(self):
+        law = ("StVK with the compression barrier" if self.body.material.name == "stvk" else
+               f"the FEM's {self.body.material.name} law with its compression barrier")
         return [f"full model on quadratic (10-node) tets: {len(self.node_rest)} nodes ({len(self.body.vertices)} "
                 f"vertices + {len(self.node_rest) - len(self.body.vertices)} edge nodes), {self.n_dofs} DOFs, "
-                f"4 quadrature points a tet, HRZ-lumped mass, StVK with the compression barrier "
-                f"(docs/method.md §4.1)"]
+                f"4 quadrature points a tet, HRZ-lumped mass, {law} (docs/method.md §4.1)"]

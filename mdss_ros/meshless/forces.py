@@ -117,17 +117,25 @@ class MeshlessForces(FreeDofs):
     stabilisation: None or S (n, w, w), the constant scalar stencil stiffness of the
     fit-residual energy 1/2 sum_i x_{s_i}^T (S_i x I_3) x_{s_i} (integration.py);
     tets: None or (t, 4) the tet mesh on the nodes, whose tets get the same compression
-    barrier on their own J (tet_barrier; zero while every tet keeps J >= jb)."""
+    barrier on their own J (tet_barrier; zero while every tet keeps J >= jb);
+    material: None (the meshless law above, stvk_volume) or an FEM material
+    (fem/materials.py) whose `evaluate` gives psi, P and dP/dF at the stencils' F, its
+    compression barrier included (kb must then be 0): the quadratic tets' other laws."""
 
     mass_kind = "lumped"
 
-    def __init__(self, X, op, V, mass, mu, lam, kv, pinned=(), stabilisation=None, kb=0.0, jb=0.2, tets=None):
+    def __init__(self, X, op, V, mass, mu, lam, kv, pinned=(), stabilisation=None, kb=0.0, jb=0.2, tets=None,
+                 material=None):
         self.X = np.ascontiguousarray(X, dtype=np.float64)
         self.n_verts = len(self.X)
         self.op = op
         self.V = np.asarray(V, dtype=np.float64)
         self.mu, self.lam, self.kv = float(mu), float(lam), float(kv)
         self.kb, self.jb = float(kb), float(jb)
+        self.material = material
+        if material is not None and (self.kb or self.kv or stabilisation is not None):
+            raise ValueError("MeshlessForces: a material brings its own law and barrier (kv = kb = 0, "
+                             "no stabilisation)")
         self.pinned = np.unique(np.asarray(pinned, dtype=np.int64))
         self.tets = None
         if tets is not None and self.kb > 0.0:
@@ -197,7 +205,7 @@ class MeshlessForces(FreeDofs):
     def node_terms(self, x, want_hessian=False, project=False):
         """(E, stencil forces (n, w, 3), stencil stiffness (n, 3w, 3w) or None) at x: the
         compiled pass (kernels.py), or this module's numpy reference when backend is 'numpy'."""
-        if self.backend == "numba":
+        if self.backend == "numba" and self.material is None:
             e, fe, Ke = node_pass(x, self.op.stencil, self.op.c, self.V, self.mu, self.lam, self.kv, self.S,
                                   want_hessian, project, self._stiff_buffer if want_hessian else None,
                                   self.kb, self.jb)
@@ -205,7 +213,10 @@ class MeshlessForces(FreeDofs):
                 self._stiff_buffer = Ke
             return float(e.sum()), fe, Ke
         F = self.op.deformation_gradients(x)
-        psi, P, H = stvk_volume(F, self.mu, self.lam, self.kv, want_hessian, project, self.kb, self.jb)
+        if self.material is not None:
+            psi, P, H = self.material.evaluate(F, want_hessian, project)
+        else:
+            psi, P, H = stvk_volume(F, self.mu, self.lam, self.kv, want_hessian, project, self.kb, self.jb)
         fe = self.V[:, None, None] * np.einsum("niJ,naJ->nai", P, self.op.c, optimize=True)
         e_hg, f_hg = self._stabilisation(x)
         Ke = stencil_stiffness(self.op.c, H, self.V) if want_hessian else None
