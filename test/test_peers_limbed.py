@@ -172,6 +172,23 @@ def test_quick_limbed_comparison_through_mdss_tradeoff(tmp_path):
         assert any("MuJoCo" in line for line in p["summary"])
 
 
+def test_quadratic_reference_judges_every_row(tmp_path, monkeypatch):
+    """quadratic=True: the rows are also judged against statics on quadratic tets of the same
+    mesh; the linear FEM row's error against it is the reference's own record, and the
+    quadratic tets bend further than the linear ones (which lock)."""
+    monkeypatch.setattr(pl, "mujoco_module", lambda: (None, peers.INSTALL_HINT))
+    monkeypatch.setattr(pl, "OURS_QUICK", [])
+    res = pl.limbed_peer_comparison(tiny_scene(), {}, tmp_path, quick=True, log=lambda m: None, timing_steps=3,
+                                    timing_rounds=1, quadratic=True)
+    q = res["quadratic_reference"]
+    fem = res["rows"][0]
+    assert fem["rms_vs_quadratic"] == pytest.approx(q["linear_fem_rms_vs_quadratic"], rel=1e-12)
+    assert 0.0 < q["linear_fem_rms_vs_quadratic"] < 0.5 and q["residual"] <= 1e-6
+    assert q["peak_displacement"] > res["fem_peak_displacement"]
+    assert q["nodes"] > res["mesh"]["vertices"]
+    assert "vs quadratic tets" in res["table"]
+
+
 def test_without_mujoco_the_comparison_skips_its_rows_with_the_install_hint(tmp_path, monkeypatch):
     monkeypatch.setattr(pl, "mujoco_module", lambda: (None, peers.INSTALL_HINT))
     monkeypatch.setattr(pl, "OURS_QUICK", [])

@@ -81,6 +81,8 @@ METRIC_NAMES = {
     "rms_vs_fem": "RMS displacement error vs our full-space FEM statics (all vertices, % of peak)",
     "rms_vs_mjfull": "RMS displacement error vs MuJoCo's full flex statics (all vertices, % of peak)",
     "tip_loaded": "loaded arm's tip displacement error vs our full-space FEM",
+    "rms_vs_quadratic": "RMS displacement error vs full-space FEM on quadratic tets of the same mesh "
+                        "(all vertices, % of its peak)",
 }
 # MuJoCo rows: (dof, cellcount or None). One cell is MuJoCo's box subspace as the beam
 # uses it; more cells give the lattice a chance to follow the limbs.
@@ -341,9 +343,10 @@ def rms_displacement_error(X, x, x_ref):
     return float(np.sqrt((np.linalg.norm(x - x_ref, axis=1) ** 2).mean()) / max(peak, 1e-300))
 
 
-def displacement_metrics(X, x, x_fem, handles, loaded, x_mjfull=None):
+def displacement_metrics(X, x, x_fem, handles, loaded, x_mjfull=None, x_quad=None):
     """The module's metrics for one static state x (n_verts, 3); handles: name -> ids;
-    loaded: the loaded handle's name, or a list of them (tip_loaded is then the worst)."""
+    loaded: the loaded handle's name, or a list of them (tip_loaded is then the worst);
+    x_mjfull, x_quad: the other references (MuJoCo's full flex, quadratic tets) or None."""
     loaded = [loaded] if isinstance(loaded, str) else list(loaded)
     tips = {name: tip_error(X, x, x_fem, ids) for name, ids in handles.items()}
     worst_loaded = max(loaded, key=tips.get)
@@ -354,6 +357,7 @@ def displacement_metrics(X, x, x_fem, handles, loaded, x_mjfull=None):
         worst = max(others, key=others.get)
         out["tip_unloaded"], out["tip_unloaded_handle"] = others[worst], worst
     out["rms_vs_mjfull"] = None if x_mjfull is None else rms_displacement_error(X, x, x_mjfull)
+    out["rms_vs_quadratic"] = None if x_quad is None else rms_displacement_error(X, x, x_quad)
     return out
 
 
@@ -420,6 +424,33 @@ def fem_static(sim, ladder=FEM_LOAD_STEPS):
     if best[1]["residual"] > 1e-6:
         raise ReportError(f"full-space statics did not converge: {best[1]}")
     return best
+
+
+def quadratic_static(scene_src, base, wrenches, ladder=FEM_LOAD_STEPS):
+    """Static equilibrium on quadratic (10-node) tets of the same mesh and material under
+    the same loads (the linear tets' statics, fem_static, lock in bending: on star_limbs
+    their peak displacement is 12.5 mm against 17.9 mm at the small load, docs/verification.md).
+    Gravity acts through the quadratic model's own (HRZ) node masses, the wrenches on the
+    mesh's vertices. Returns (x (n_verts, 3), info with "nodes")."""
+    from ..fem.statics import static_equilibrium
+    from ..simulator import Simulator
+    sim = Simulator(load_scene(scene_src, dict(base, **{"model.kind": "full", "model.element": "quadratic"})))
+    for h, f, t in wrenches:
+        sim.set_wrench(h, f, t)
+    fm, n_v = sim.model.force_model, len(sim.body.vertices)
+    f = fm.vertex_mass[:, None] * sim.gravity[None, :]
+    f[:n_v] += sim.applied_forces()
+    best = None
+    for steps in ladder:
+        x, info = static_equilibrium(fm, f, tol=1e-9, max_iterations=30, load_steps=steps)
+        info["load_steps"] = steps
+        if best is None or info["residual"] < best[1]["residual"]:
+            best = (x, info)
+        if info["converged"]:
+            break
+    if best[1]["residual"] > 1e-6:
+        raise ReportError(f"quadratic-tet statics did not converge: {best[1]}")
+    return best[0][:n_v], dict(best[1], nodes=int(fm.n_verts))
 
 
 def reduced_static(sim, loads, ladder=REDUCED_LOAD_STEPS, tol=1e-9, max_steps=200):
@@ -490,7 +521,8 @@ def _mujoco_label(mj, dof, cells):
 
 def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=print, timing_steps=60,
                            timing_rounds=3, tip_force_scale=1.0, side_force=0.0, back_force=0.0, ours=None,
-                           mujoco_rows=None, plot_name="tradeoff_peers_limbed.png", regions=None, cache=None):
+                           mujoco_rows=None, plot_name="tradeoff_peers_limbed.png", regions=None, cache=None,
+                           quadratic=None):
     """MuJoCo flex (full, trilinear, quadratic, multi-cell) vs our full-space FEM and reduced
     configurations, static equilibrium under gravity + the timeline's first wrench (times
     tip_force_scale, plus side_force N sideways on a second arm, plus back_force N on the
@@ -501,7 +533,9 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
     ours / mujoco_rows: the rows to run instead of OURS / MUJOCO_ROWS (or their quick
     lists); regions: {name: vertex ids} over which every row's RMS error is also split
     (rms_by_region, same scale: % of the global peak); cache: a PrecomputeCache for our
-    reduced rows (default: one folder per row under out/cache)."""
+    reduced rows (default: one folder per row under out/cache); quadratic: also judge every
+    row against full-space statics on quadratic tets of the same mesh (quadratic_static,
+    "rms_vs_quadratic"); default: not in quick runs (about a minute on star_limbs)."""
     from ..simulator import Simulator
     base = dict(base_overrides or {})
     scene = load_scene(scene_src, dict(base, **{"model.kind": "reduced"}))
@@ -546,6 +580,21 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
     log(f"peers (limbed): our full FEM statics: peak displacement {1e3 * peak:.3f} mm, {info['iterations']} Newton "
         f"iterations in {info['load_steps']} load steps (residual {info['residual']:.2g}), "
         f"{rows[-1]['step_ms']:.2f} ms/step")
+
+    x_quad = None
+    if quadratic if quadratic is not None else not quick:
+        t0 = time.perf_counter()
+        x_quad, qinfo = quadratic_static(scene_src, base, wrenches)
+        qpeak = float(np.linalg.norm(x_quad - X, axis=1).max())
+        result["quadratic_reference"] = {
+            "nodes": qinfo["nodes"], "peak_displacement": qpeak, "load_steps": qinfo["load_steps"],
+            "residual": qinfo["residual"], "wall_s": time.perf_counter() - t0,
+            "linear_fem_rms_vs_quadratic": rms_displacement_error(X, x_fem, x_quad),
+            "bend_deg": {h: handle_rotation_deg(X, x_quad, s["handles"][h]) for h in s["handles"]}}
+        log(f"peers (limbed): quadratic-tet statics ({qinfo['nodes']} nodes): peak displacement "
+            f"{1e3 * qpeak:.3f} mm (linear tets {1e3 * peak:.3f} mm, "
+            f"{100 * result['quadratic_reference']['linear_fem_rms_vs_quadratic']:.3g} % RMS apart) "
+            f"[{time.perf_counter() - t0:.1f} s]")
 
     mj, why = mujoco_module()
     x_mjfull = None
@@ -605,7 +654,7 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
         x = row.pop("x", None)
         if "failed" in row or x is None:
             continue
-        row.update(displacement_metrics(X, x, x_fem, s["handles"], loaded, x_mjfull))
+        row.update(displacement_metrics(X, x, x_fem, s["handles"], loaded, x_mjfull, x_quad))
         row["bend_deg"] = {h: handle_rotation_deg(X, x, s["handles"][h]) for h in loaded}
         row["tip_displacement"] = {k: (x[ids].mean(0) - X[ids].mean(0)).tolist() for k, ids in s["handles"].items()}
         row["error_x_ms"] = row["rms_vs_fem"] * row["step_ms"]
@@ -633,7 +682,7 @@ def limbed_summary(rows):
     if quad is None:
         return ["no MuJoCo quadratic flex row: nothing to compare"]
     out = []
-    for metric in ("rms_vs_fem", "rms_vs_mjfull", "tip_loaded"):
+    for metric in ("rms_vs_fem", "rms_vs_mjfull", "rms_vs_quadratic", "tip_loaded"):
         out += compare_to(ok, quad, metric, METRIC_NAMES)
     scene = next((r for r in ok if r["label"] == "mdss reduced: scene config"), None)
     if scene is not None:
@@ -672,19 +721,24 @@ def limbed_table(rows, loaded):
             continue
         label = r["label"] + (" [not settled]" if r.get("settled") is False else "")
         body.append([label, r["dofs"], f"{r['step_ms']:.3g}", pct(r["rms_vs_fem"]), pct(r.get("rms_vs_mjfull")),
+                     pct(r.get("rms_vs_quadratic")),
                      pct(r["tip_loaded"]), f"{pct(r.get('tip_unloaded'))} ({r.get('tip_unloaded_handle', '-')})",
                      f"{r['error_x_ms'] * 100:.3g}"])
     return format_table(["model", "DOFs", "ms/step", "RMS err vs our FEM %", "RMS err vs MuJoCo full %",
-                         f"tip err {loaded} % (worst)", "worst unloaded tip err %", "err x ms (% ms)"], body)
+                         "RMS err vs quadratic tets %", f"tip err {loaded} % (worst)", "worst unloaded tip err %",
+                         "err x ms (% ms)"], body)
 
 
 def limbed_plot(rows, path, name, load="one arm's tip force"):
-    """Two log-log panels, ms/step vs RMS displacement error against our full FEM and
-    against MuJoCo's full flex; MuJoCo squares, ours circles, every point labelled."""
+    """Log-log panels, ms/step vs RMS displacement error against our full FEM, against
+    MuJoCo's full flex and (when the rows have it) against quadratic tets; MuJoCo squares,
+    ours circles, every point labelled."""
     from .plotting import pyplot, save_figure
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
-    for ax, key in zip(axes, ("rms_vs_fem", "rms_vs_mjfull")):
+    keys = ["rms_vs_fem", "rms_vs_mjfull"] + (["rms_vs_quadratic"] if any(r.get("rms_vs_quadratic") is not None
+                                                                         for r in rows) else [])
+    fig, axes = plt.subplots(1, len(keys), figsize=(7.5 * len(keys), 6.2))
+    for ax, key in zip(axes, keys):
         for r in rows:
             if "failed" in r or r.get(key) is None or r[key] <= 1e-12:
                 continue                     # each reference row against itself
@@ -765,17 +819,20 @@ def level_verdict(rows, rms_target=0.03, max_r=60):
 
 
 def level_table(rows):
-    """model, DOFs, RMS % of peak vs our FEM, ms/step, error x ms, loaded-tip error, fit energy."""
+    """model, DOFs, RMS % of peak vs our FEM (and vs quadratic tets), ms/step, error x ms,
+    loaded-tip error, fit energy."""
     body = []
     for r in rows:
         if "failed" in r:
-            body.append([r["label"], "-", "failed: " + r["failed"][:50], "-", "-", "-", "-"])
+            body.append([r["label"], "-", "failed: " + r["failed"][:50], "-", "-", "-", "-", "-"])
             continue
         fit = r.get("fit", {}).get("fit_energy_ratio")
+        quad = r.get("rms_vs_quadratic")
         body.append([r["label"] + (" [not settled]" if r.get("settled") is False else ""), r["dofs"],
-                     f"{100 * r['rms_vs_fem']:.3g}", f"{r['step_ms']:.3g}", f"{100 * r['error_x_ms']:.3g}",
+                     f"{100 * r['rms_vs_fem']:.3g}", "-" if quad is None else f"{100 * quad:.3g}",
+                     f"{r['step_ms']:.3g}", f"{100 * r['error_x_ms']:.3g}",
                      f"{100 * r['tip_loaded']:.3g}", "-" if fit is None else f"{fit:.2f}"])
-    return format_table(["model", "DOFs", "RMS err % of peak", "ms/step", "err x ms (% ms)",
+    return format_table(["model", "DOFs", "RMS err % of peak", "vs quadratic tets %", "ms/step", "err x ms (% ms)",
                          "worst loaded tip err %", "fit energy / FEM"], body)
 
 
