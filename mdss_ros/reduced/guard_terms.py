@@ -34,31 +34,32 @@ class GuardTerms:
         potential from the mass moments; an upper bound of vertex speeds,
         |v| + |w| (rho + sigma |q|) + sigma |qd| (rho the largest rest radius, sigma the
         largest per-vertex basis norm); inverted elements among those the forces sample
-        (cubature samples, coupling and full-space elements)."""
+        (cubature samples, coupling and full-space elements). Non-finite states give
+        finite=False; the guard calls it under np.errstate(all="ignore"), so they warn
+        nowhere."""
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
-        with np.errstate(all="ignore"):
-            L = self.layout
-            out = np.empty(4)
-            frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, L.movable, L.total_mass, L.inertia0, L.B1,
-                          L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
-            # x_full / v_full hold every vertex but only full-space rows are state: checking
-            # them on a model without full-space domains was a third of this measure.
-            finite = bool(out[0]) and (not self.F or (np.isfinite(self.x_full).all()
-                                                      and np.isfinite(self.v_full).all()))
-            if not finite:
-                return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
-            kinetic, grav, speed = float(out[1]), float(out[2]), float(out[3])
-            if self.F:
-                m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
-                kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
-                grav -= float((m * (self.x_full @ g)).sum())
-                speed = max(speed, float(np.sqrt((self.v_full * self.v_full).sum(1).max())))
-            try:
-                elastic = float(self.elastic_energy())
-            except (ArithmeticError, ValueError, RuntimeError):
-                elastic = np.nan
-            inverted = self._guard_inverted() if check_inversion else 0
+        L = self.layout
+        out = np.empty(4)
+        frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, L.movable, L.total_mass, L.inertia0, L.B1,
+                      L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
+        # x_full / v_full hold every vertex but only full-space rows are state: checking
+        # them on a model without full-space domains was a third of this measure.
+        finite = bool(out[0]) and (not self.F or (np.isfinite(self.x_full).all()
+                                                  and np.isfinite(self.v_full).all()))
+        if not finite:
+            return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
+        kinetic, grav, speed = float(out[1]), float(out[2]), float(out[3])
+        if self.F:
+            m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
+            kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
+            grav -= float((m * (self.x_full @ g)).sum())
+            speed = max(speed, float(np.sqrt((self.v_full * self.v_full).sum(1).max())))
+        try:
+            elastic = float(self.elastic_energy())
+        except (ArithmeticError, ValueError, RuntimeError):
+            elastic = np.nan
+        inverted = self._guard_inverted() if check_inversion else 0
         finite = all(math.isfinite(v) for v in (kinetic, elastic, grav, speed))
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 

@@ -257,7 +257,9 @@ class StackedSamples:
         pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
             self.G, self.wV, q, m.kind_id, m.params, bool(want_hessian), False,
             self.energy, self.g, CG, self.det)
-        self.det_at = q.copy()
+        # The state the det F below belongs to, by identity: a model's q is replaced, never
+        # changed in place, and comparing values (np.array_equal) cost a microsecond a step.
+        self.det_at = q
         energy, g = self.energy.sum(1), self.g.sum(1)
         if not want_hessian:
             return energy, g, None
@@ -266,6 +268,6 @@ class StackedSamples:
     def inverted_count(self, q):
         """Samples with det F <= 0 (NaN counts) at q (D, r_max), read from the last
         evaluation when it was at q, else formed again (measure.inverted_samples)."""
-        if self._weighted and self.det_at is not None and np.array_equal(self.det_at, q):
+        if self._weighted and self.det_at is q:
             return count_not_positive(self.det, self.valid)
         return inverted_samples(self.G, np.ascontiguousarray(q), self.valid)
