@@ -22,7 +22,8 @@ hard signs (the step is rejected):
 soft signs (a retry is attempted; if none clears them the best finite attempt is kept):
   * inversion   -- more inverted tets (det F <= 0) after the step than before;
   * newton      -- Newton iterations (newton_iterations > 1) whose last residual is more
-                   than NEWTON_DIVERGED x the first.
+                   than NEWTON_DIVERGED x the first, or a reduced line search that found no
+                   descent from the first iterate (stats newton_stalled "first").
 
 A rejected step is rolled back to the snapshot taken before it (model state, collider
 sweep bookkeeping) and retried along a ladder of attempts, cheapest first: the same dt
@@ -195,6 +196,10 @@ class StabilityGuard:
             out.soft.append("inversion")
         res = model_stats.get("residual") if isinstance(model_stats, dict) else None
         if model_stats.get("newton_iterations", 1) > 1 and res is not None and not res <= NEWTON_DIVERGED:
+            out.soft.append("newton")
+        elif model_stats.get("newton_stalled") == "first":
+            # The reduced line search found no descent from the first iterate, and the step
+            # ended with no relative motion (reduced/step.py, Step._line_search).
             out.soft.append("newton")
         return out
 

@@ -120,7 +120,7 @@ class Step:
         if contact_rows is not None and self.scheme == "two_step":
             raise SceneError("contact is available with the one-step scheme only")
         r0 = r_last = 0.0
-        cuts, damped, stalled = 0, 0, False
+        cuts, damped, stalled = 0, 0, ""
         if self.scheme == "two_step":
             Q = self._two_step(mass.dense(), K_ss, (system.damping_dense(),), p0, G, Fn, dt)
             iterations = 1
@@ -145,10 +145,13 @@ class Step:
                 if terms.newton_iterations > 1 and self.line_search and not self.unsymmetric and contact_rows is None:
                     step_len, dQ, n_cuts, mu = self._line_search(system, A, r, Q, dQ, (p0, Fn, energy), base, dt)
                     cuts += n_cuts
-                    damped += mu > 0.0
                     if step_len == 0.0:
-                        stalled = True        # no length of any direction lowers the potential
+                        # No length of any direction lowers the potential: keep this iterate.
+                        # At the first iteration that is Q = 0 (no relative motion at the
+                        # step's end), which the guard treats as a sign to retry.
+                        stalled = "first" if it == 0 else "later"
                         break
+                    damped += mu > 0.0
                 Q = Q + step_len * dQ
                 if it + 1 == terms.newton_iterations:
                     break
@@ -227,9 +230,9 @@ class Step:
         it turns towards the mass-weighted steepest descent and shortens, and it is a
         descent direction once A + mu Mgen is positive definite. Why it is needed: the
         tangent omits the derivative of J (§8), which is small next to the inertia until
-        coupling elements carry large forces; in a stiff body spun fast (E 1e11 Pa, 1000
-        rad/s, stability_study's reduced corotated corner) it was ten times the angular
-        inertia / dt^2, the plain direction raised the potential at every length down to
+        coupling elements carry large forces; in a stiff body spun fast (stability_study's
+        reduced corotated corner, E 1e11 Pa, spun up to about 1000 rad/s by its load) it
+        was ten times the angular inertia / dt^2, the plain direction raised the potential at every length down to
         1e-4, and the old loop took that last length anyway: 23 J of elastic energy became
         35,000 J in one sub-step. Returns length 0 (no step) when every damped direction
         fails too; the step then keeps the iterate it has."""
