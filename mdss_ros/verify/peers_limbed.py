@@ -407,23 +407,28 @@ FEM_LOAD_STEPS = (1, 3, 10, 30)
 REDUCED_LOAD_STEPS = (1, 4, 16)
 
 
-def fem_static(sim, ladder=FEM_LOAD_STEPS):
-    """Full-space static equilibrium of a full Simulator under its gravity and held loads:
-    Newton statics with the load ramped over the first load-step count of `ladder` that
-    converges (large deformations need the ramp). Returns (x (n, 3), info)."""
+def ramped_static(force_model, f_ext, ladder=FEM_LOAD_STEPS, what="full-space"):
+    """Newton statics of a full-space force model under f_ext (n_nodes, 3), the load ramped
+    over the first load-step count of `ladder` that converges (large deformations need the
+    ramp). Returns (x (n_nodes, 3), info); raises ReportError if none gets within 1e-6."""
     from ..fem.statics import static_equilibrium
     best = None
     for steps in ladder:
-        x, info = static_equilibrium(sim.model.force_model, sim.external_forces(), tol=1e-9, max_iterations=30,
-                                     load_steps=steps)
+        x, info = static_equilibrium(force_model, f_ext, tol=1e-9, max_iterations=30, load_steps=steps)
         info["load_steps"] = steps
         if best is None or info["residual"] < best[1]["residual"]:
             best = (x, info)
         if info["converged"]:
             break
     if best[1]["residual"] > 1e-6:
-        raise ReportError(f"full-space statics did not converge: {best[1]}")
+        raise ReportError(f"{what} statics did not converge: {best[1]}")
     return best
+
+
+def fem_static(sim, ladder=FEM_LOAD_STEPS):
+    """Full-space static equilibrium of a full Simulator under its gravity and held loads
+    (ramped_static). Returns (x (n, 3), info)."""
+    return ramped_static(sim.model.force_model, sim.external_forces(), ladder)
 
 
 def quadratic_static(scene_src, base, wrenches, ladder=FEM_LOAD_STEPS):
@@ -432,7 +437,6 @@ def quadratic_static(scene_src, base, wrenches, ladder=FEM_LOAD_STEPS):
     their peak displacement is 12.5 mm against 17.9 mm at the small load, docs/verification.md).
     Gravity acts through the quadratic model's own (HRZ) node masses, the wrenches on the
     mesh's vertices. Returns (x (n_verts, 3), info with "nodes")."""
-    from ..fem.statics import static_equilibrium
     from ..simulator import Simulator
     sim = Simulator(load_scene(scene_src, dict(base, **{"model.kind": "full", "model.element": "quadratic"})))
     for h, f, t in wrenches:
@@ -440,17 +444,8 @@ def quadratic_static(scene_src, base, wrenches, ladder=FEM_LOAD_STEPS):
     fm, n_v = sim.model.force_model, len(sim.body.vertices)
     f = fm.vertex_mass[:, None] * sim.gravity[None, :]
     f[:n_v] += sim.applied_forces()
-    best = None
-    for steps in ladder:
-        x, info = static_equilibrium(fm, f, tol=1e-9, max_iterations=30, load_steps=steps)
-        info["load_steps"] = steps
-        if best is None or info["residual"] < best[1]["residual"]:
-            best = (x, info)
-        if info["converged"]:
-            break
-    if best[1]["residual"] > 1e-6:
-        raise ReportError(f"quadratic-tet statics did not converge: {best[1]}")
-    return best[0][:n_v], dict(best[1], nodes=int(fm.n_verts))
+    x, info = ramped_static(fm, f, ladder, "quadratic-tet")
+    return x[:n_v], dict(info, nodes=int(fm.n_verts))
 
 
 def reduced_static(sim, loads, ladder=REDUCED_LOAD_STEPS, tol=1e-9, max_steps=200):
