@@ -232,10 +232,10 @@ class Step:
         tangent omits the derivative of J (§8), which is small next to the inertia until
         coupling elements carry large forces; in a stiff body spun fast (stability_study's
         reduced corotated corner, E 1e11 Pa, spun up to about 1000 rad/s by its load) it
-        was ten times the angular inertia / dt^2, the plain direction raised the potential at every length down to
-        1e-4, and the old loop took that last length anyway: 23 J of elastic energy became
-        35,000 J in one sub-step. Returns length 0 (no step) when every damped direction
-        fails too; the step then keeps the iterate it has."""
+        was ten times the angular inertia / dt^2, the plain direction raised the potential
+        at every length down to 1e-4, and the old loop took that last length anyway: 23 J
+        of elastic energy became 35,000 J in one sub-step. Returns length 0 (no step) when
+        every damped direction fails too; the step then keeps the iterate it has."""
         p0, Fn, energy = terms
         phi0 = system.potential(Q, p0, Fn, energy)
         cuts = 0
