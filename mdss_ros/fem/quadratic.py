@@ -33,7 +33,6 @@ both its ends are.
 """
 import numpy as np
 
-from ..errors import SceneError
 from ..meshless.embedding import Embedding
 from ..meshless.forces import MeshlessForces
 from ..meshless.mls import GradientOperator
@@ -107,9 +106,8 @@ class QuadraticFullModel(EmbeddedNodes, VertexState):
         if material.name == "stvk":
             # The meshless StVK (no singular-value clamp, see the module docstring), compiled.
             self.force_model = MeshlessForces(nodes, op, w, masses, material.mu, material.lam, 0.0,
-                                              self.node_pinned, None,
-                                              float(getattr(material, "barrier", 0.0)) * material.mu,
-                                              float(getattr(material, "barrier_j", 0.2)))
+                                              self.node_pinned, None, material.barrier * material.mu,
+                                              material.barrier_j)
         else:
             # The FEM's own point law (corotated, neo-Hookean with its barrier) at every
             # quadrature point: the same material as a linear-tet model of the scene.
