@@ -26,8 +26,11 @@ def build_model(scene, body, progress=None, cache=None):
                               mass=scene["body"]["mass"], solver=model["solver"])
     if kind == "reduced":
         from .reduced.reduced_model import ReducedModel
+        modes = model["contact_modes"]
         return ReducedModel(body, model, scene.dt, scene["body"]["damping"], solver=model["solver"],
-                            progress=progress, cache=cache, contact_vertices=contact_candidates(scene, body, model))
+                            progress=progress, cache=cache, contact_vertices=contact_candidates(scene, body, model),
+                            contact_mode_vertices=(None if modes["kind"] == "none" else
+                                                   contact_candidates(scene, body, model, modes["vertices"])))
     if kind == "meshless":
         from .meshless.model import LatticeMeshlessModel, MeshlessModel
         if model["meshless"]["nodes"] == "lattice":
@@ -39,17 +42,17 @@ def build_model(scene, body, progress=None, cache=None):
                      f"(available: full, reduced, meshless)")
 
 
-def contact_candidates(scene, body, model):
+def contact_candidates(scene, body, model, count=None):
     """Free surface vertex ids (k,) where the scene's colliders other than planes can touch,
-    nearest their scene paths first (contact/envelope.py), at most model.contact_compliance
-    of them; None when there is no such collider or the setting is 0.
+    nearest their scene paths first (contact/envelope.py), at most count (default
+    model.contact_compliance) of them; None when there is no such collider or the count is 0.
 
     Planes are left out. A floor under a body touches its whole underside, and with the
     dent every vertex there carries load: the caterpillar resting on its floor had 231
     contacts instead of 39, and its step went from 5.3 to 28 ms frictionless, and to about
     100 ms with friction, for the same total reaction (its weight). The dent matters where
     a tool presses a body locally, which a plane does not."""
-    count = int(model.get("contact_compliance", 0) or 0)
+    count = int((model.get("contact_compliance", 0) if count is None else count) or 0)
     specs = {name: spec for name, spec in scene["colliders"].items() if spec.get("shape") != "plane"}
     if count <= 0 or not specs:
         return None

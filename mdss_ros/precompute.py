@@ -40,6 +40,7 @@ STAGE_CODE = {
                  "reduced/reduced_model.py::ReducedModel._restore_cubature",
                  "reduced/reduced_model.py::ReducedModel._build_interface_cubature",
                  "reduced/reduced_model.py::ReducedModel.training_simulation"],
+    "contact_modes": ["reduced/contact_modes.py", "reduced/residual_compliance.py", "precompute.py"],
     "compliance": ["reduced/residual_compliance.py", "reduced/layout.py", "fem/force_model.py", "precompute.py",
                    "reduced/reduced_model.py::ReducedModel._build_compliance"],
 }
@@ -192,6 +193,12 @@ def cubature_cache_key(bases_key, cubature_cfg, dt, alpha, beta, model_cfg):
     """Key of the cubature stage: the bases key plus training/cubature settings, dt, damping, coupling."""
     return cache_key("cubature", bases_key, code_hash("cubature"), cubature_cfg, float(dt), float(alpha),
                      float(beta), model_cfg.get("coupling") or {})
+
+
+def contact_modes_cache_key(bases_key, settings, vertices):
+    """The bases key once contact modes (settings: model.contact_modes) on the candidate
+    vertices are added: what the later stages (cubature, compliance) key on."""
+    return cache_key("contact_modes", bases_key, code_hash("contact_modes"), settings, np.asarray(vertices))
 
 
 def compliance_cache_key(bases_key, vertices):

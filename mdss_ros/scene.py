@@ -156,6 +156,17 @@ SCHEMA = {
         # §14.2): the local dent a subspace cannot make, on up to this many free surface
         # vertices nearest the colliders' paths in the scene; 0 turns it off.
         "contact_compliance": (_nonneg_int, 800),
+        # Contact modes (reduced/contact_modes.py, docs/method.md §14.3): the alternatives the
+        # residual compliance is measured against. Static (K^+ E_c) or local (a patch of
+        # `radius` m, 0: 4 mean surface edges, held at its edge) answers to unit loads on the
+        # `vertices` surface vertices nearest the colliders' paths, compressed to `count`
+        # directions per domain and added to its modes. none: off.
+        "contact_modes": {
+            "kind": (_choice("none", "static", "local"), "none"),
+            "vertices": (_posint, 50),
+            "count": (_posint, 30),
+            "radius": (_nonneg, 0.0),
+        },
         "coupling": (dict, {"kind": "element"}),
         "basis": (dict, {}),
         "budget": (_any, {}),

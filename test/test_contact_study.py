@@ -17,6 +17,13 @@ def test_rows_of_a_case_name_the_old_remedy_and_the_counts():
     assert "colliders.probe.reach" in ov["reach patch"]
     with pytest.raises(ValueError, match="unknown case"):
         cs.case_rows("nothing", [1])
+    # The anchors: contact modes instead of the residual compliance, samples per mode kept
+    # (hertz_block: 400 samples for 40 modes).
+    ov = dict(cs.case_rows("hertz_block", [50], ["static", "local"], [10, 90]))
+    assert ov["static 90"] == {"model.contact_compliance": 0, "model.contact_modes.kind": "static",
+                               "model.contact_modes.count": 90, "model.cubature.samples": 1300}
+    assert ov["local 10"]["model.cubature.samples"] == 500
+    assert "model.cubature.samples" not in dict(cs.case_rows("grasp", [50], ["static"], [10]))["static 10"]
 
 
 @pytest.mark.claims

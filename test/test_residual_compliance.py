@@ -179,3 +179,87 @@ def test_no_colliders_builds_no_compliance():
     scene = _block(True)
     scene["colliders"] = {}
     assert Simulator(scene).model.compliance is None
+
+
+# ------------------------------------------------------------- contact modes (the anchors)
+@pytest.mark.parametrize("pinned", [True, False])
+def test_static_contact_modes_hold_the_full_static_answer(pinned):
+    """One domain with all 3 n_c static contact modes: the Galerkin answer of the reduced
+    model to any load on the candidates, J (J^T K J)^+ J^T P f, is the full-space FEM's
+    K^+ P f on every DOF (both M-orthogonal to the rigid modes when floating); the basis
+    stays M-orthonormal, and a movable domain's stays free of rigid motion."""
+    from mdss_ros.reduced.contact_modes import add_contact_modes
+    n_c = 4
+    sim = Simulator(_block(pinned, domains={"count": 1}, contact_compliance=0,
+                           contact_modes={"kind": "static", "vertices": n_c, "count": 3 * n_c}))
+    m = sim.model
+    body = m.body
+    cand = np.asarray(m.contact_mode_vertices)
+    assert len(cand) == n_c and m.subspace[0].U.shape[1] == 8 + 3 * n_c
+    assert any("static contact modes" in line for line in sim.explain())
+    fem = FEMForceModel(body.vertices, body.tets, body.material, pinned=body.pinned)
+    K = fem.pattern.matrix(fem.tangent(body.vertices)[2]).toarray()
+    free = np.flatnonzero(fem.pattern.free_dof >= 0)
+    J = kinematics_at_rest(m.layout, m.n_gen, len(body.vertices)).toarray()[free]
+    mass = np.repeat(m.vertex_mass, 3)[free]
+    rng = np.random.default_rng(2)
+    f = np.zeros(len(free))
+    f[fem.pattern.free_dof[(3 * cand[:, None] + np.arange(3)).ravel()]] = rng.normal(size=3 * n_c)
+    P = proj = np.eye(len(free))
+    if not pinned:
+        R = rigid_modes(body.vertices, m.vertex_mass)
+        P = np.eye(len(free)) - (mass[:, None] * R) @ R.T
+        proj = np.eye(len(free)) - R @ (R.T * mass)
+    u = proj @ np.linalg.pinv(K, rcond=1e-10, hermitian=True) @ P @ f
+    u_r = proj @ J @ np.linalg.pinv(J.T @ K @ J, rcond=1e-10, hermitian=True) @ J.T @ P @ f
+    np.testing.assert_allclose(u_r, u, atol=1e-7 * np.abs(u).max())
+    dom = m.subspace[0]
+    md = np.repeat(dom.mass, 3)
+    np.testing.assert_allclose(dom.U.T @ (md[:, None] * dom.U), np.eye(dom.U.shape[1]), atol=1e-9)
+    if not pinned:
+        Rd = rigid_modes(dom.r_local, dom.mass)
+        assert np.abs(Rd.T @ (md[:, None] * dom.U)).max() < 1e-9
+    # Without the contact modes the same load is answered far from exactly.
+    base = Simulator(_block(pinned, domains={"count": 1}, contact_compliance=0)).model
+    J0 = kinematics_at_rest(base.layout, base.n_gen, len(body.vertices)).toarray()[free]
+    u0 = proj @ J0 @ np.linalg.pinv(J0.T @ K @ J0, rcond=1e-10, hermitian=True) @ J0.T @ P @ f
+    assert np.linalg.norm(u0 - u) > 0.3 * np.linalg.norm(u)
+    # Fewer directions than fields: count is a cap.
+    fewer, _ = add_contact_modes(base.subspace, body, base.vertex_mass, cand,
+                                 {"kind": "static", "count": 5, "radius": 0.0})
+    assert fewer[0].U.shape[1] == 8 + 5
+
+
+def test_local_contact_modes_are_patch_answers_with_compact_support():
+    """Each local field solves K u = e on the patch's free DOFs and is zero on every vertex
+    farther than the radius from all candidates (held there)."""
+    from mdss_ros.reduced.contact_modes import local_responses
+    sim = Simulator(_block(True, contact_compliance=0))
+    body = sim.model.body
+    top = np.flatnonzero(np.isclose(body.vertices[:, 2], 0.04))
+    cand = top[np.argsort(np.linalg.norm(body.vertices[top, :2], axis=1))[:3]]
+    radius = 0.021
+    fields, patch = local_responses(body, cand, radius)
+    X = body.vertices
+    far = np.linalg.norm(X[:, None] - X[cand][None], axis=2).min(axis=1) > radius
+    assert 0 < patch < len(X) and patch == int((~far).sum())
+    assert np.abs(fields.reshape(len(X), 3, -1)[far]).max() == 0.0
+    fem = FEMForceModel(X, body.tets, body.material)
+    K = fem.pattern.matrix(fem.tangent(X)[2]).toarray()                 # no pins: every DOF
+    held = np.zeros(len(X), dtype=bool)
+    held[body.pinned] = True
+    inside = np.repeat(~far & ~held, 3)
+    E = np.zeros((3 * len(X), 3 * len(cand)))
+    E[(3 * cand[:, None] + np.arange(3)).ravel(), np.arange(3 * len(cand))] = 1.0
+    np.testing.assert_allclose((K @ fields)[inside], E[inside], atol=1e-9 * np.abs(K @ fields).max())
+
+
+def test_static_contact_modes_bring_a_shallow_press_to_the_full_fem_force():
+    """The punch's nine vertices' 27 static fields in the subspace, no residual compliance:
+    the 0.3 mm press reads the full-space FEM's force within 3 %, like the residual
+    compliance (test above)."""
+    f_full, _ = _press("full", 3e-4)
+    f_modes, sim = _press("reduced", 3e-4, contact_compliance=0,
+                          contact_modes={"kind": "static", "vertices": 9, "count": 27})
+    assert sim.model.compliance is None
+    assert abs(f_modes / f_full - 1.0) < 0.03, (f_full, f_modes)

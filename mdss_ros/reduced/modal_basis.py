@@ -142,14 +142,14 @@ def rigid_modes(X, mass):
     return modes.reshape(3 * k, 6)
 
 
-def _m_project(V, R, m):
+def mass_project(V, R, m):
     """Remove the span of the M-orthonormal columns R from V: V - R R^T M V (R None: V)."""
     if R is None:
         return V
     return V - R @ (R.T @ (m[:, None] * V))
 
 
-def _m_orthonormalise(V, m):
+def mass_orthonormalise(V, m):
     """Mass-orthonormalise the columns of V (Cholesky QR, twice for stability)."""
     for _ in range(2):
         G = V.T @ (m[:, None] * V)
@@ -198,7 +198,7 @@ def lambda_scale(K, m, X, free_mask, R=None, fixed=()):
     for i in range(3):                                                      # 3 axes, vectorised over fields
         fields[:, i, i::3] = S
     V = fields.reshape(3 * n, -1)[free_mask]
-    V = _m_project(V, R, m)
+    V = mass_project(V, R, m)
     # M-orthonormal basis of the trial space (drop dependent fields), then the smallest Ritz value.
     Y = np.sqrt(m)[:, None] * V
     Uy, s, _ = np.linalg.svd(Y, full_matrices=False)
@@ -223,7 +223,7 @@ class _ShiftInvert:
 
     def solve(self, B):
         """P (K - sigma M)^{-1} B with P = I - R R^T M (rigid components removed)."""
-        return _m_project(self.solver.solve(B), self.R, self.m)
+        return mass_project(self.solver.solve(B), self.R, self.m)
 
 
 def linear_modes(K, m, n, rigid=None, method="auto", sigma=None, shift_invert=None, seed=0):
@@ -264,11 +264,11 @@ def linear_modes(K, m, n, rigid=None, method="auto", sigma=None, shift_invert=No
         si = shift_invert
         op = spla.LinearOperator((n_free, n_free), dtype=np.float64,
                                  matvec=lambda x: si.solve(x.reshape(-1, 1))[:, 0])
-        v0 = _m_project(np.random.default_rng(seed).standard_normal((n_free, 1)), rigid, m)[:, 0]
+        v0 = mass_project(np.random.default_rng(seed).standard_normal((n_free, 1)), rigid, m)[:, 0]
         _, Phi = spla.eigsh(K, k=n, M=sp.diags(m).tocsr(), sigma=si.sigma, which="LM",
                             OPinv=op, v0=v0)
         # Polish: rigid projection, M-orthonormalisation and a Rayleigh-Ritz step.
-        Phi = _m_orthonormalise(_m_project(Phi, rigid, m), m)
+        Phi = mass_orthonormalise(mass_project(Phi, rigid, m), m)
         Kr = Phi.T @ (K @ Phi)
         lam, Y = np.linalg.eigh(0.5 * (Kr + Kr.T))
         Phi = Phi @ Y
@@ -342,7 +342,7 @@ def _solve_complement(si, K, m, R, B, Phi=None, lam=None):
     err = float((np.linalg.norm(Res, axis=0) / scale).max())
     if err > 1e-8:
         raise RuntimeError(f"modal derivative solve did not converge (relative residual {err:.2e})")
-    return _m_project(X, R, m)
+    return mass_project(X, R, m)
 
 
 def modal_derivatives(model, Phi, m, rigid=None, eigenvalues=None, pairs=None, eps=None,
@@ -546,15 +546,15 @@ def modal_basis(X, tets, material, vertex_mass, r, fixed=(), keep=None, n_linear
 
     def on_keep(V):
         V = _full_columns(model, V).reshape(n, 3, -1)[keep].reshape(3 * keep.size, -1)
-        return _m_project(V, Rk, mk)
+        return mass_project(V, Rk, mk)
 
     n_deriv = W_der.shape[1] if W_der is not None else (0 if W_der_keep is None else W_der_keep.shape[1])
-    U_lin, rank_lin = _mass_pca(on_keep(W_lin), mk, r)
+    U_lin, rank_lin = mass_pca(on_keep(W_lin), mk, r)
     blocks, rank = [U_lin], rank_lin
     if (W_der is not None or W_der_keep is not None) and rank < r:
-        Wd0 = on_keep(W_der) if W_der is not None else _m_project(W_der_keep, Rk, mk)
+        Wd0 = on_keep(W_der) if W_der is not None else mass_project(W_der_keep, Rk, mk)
         Wd = Wd0 - U_lin @ (U_lin.T @ (mk[:, None] * Wd0))                     # new directions only
-        U_der, rank_der = _mass_pca(Wd, mk, r - rank, reference=_m_norms(Wd0, mk).max())
+        U_der, rank_der = mass_pca(Wd, mk, r - rank, reference=_m_norms(Wd0, mk).max())
         blocks.append(U_der)
         rank += rank_der
     if rank < r:
@@ -564,7 +564,7 @@ def modal_basis(X, tets, material, vertex_mass, r, fixed=(), keep=None, n_linear
                          f"), fewer than r={r}; raise n_linear or enable derivatives")
     U = np.concatenate(blocks, axis=1)
     U[np.repeat(np.isin(keep, fixed), 3)] = 0.0                                 # exact zeros on pins
-    U = _fix_signs(_m_orthonormalise(_m_project(U, Rk, mk), mk))
+    U = _fix_signs(mass_orthonormalise(mass_project(U, Rk, mk), mk))
     return ModalBasis(U=U, eigenvalues=lam, n_linear=int(n_linear), n_derivatives=int(n_deriv),
                       derivative_source=source,
                       mass=mk, is_free=bool(is_free), build_seconds=time.perf_counter() - t0)
@@ -599,7 +599,7 @@ def keep_derivatives(model, X, tets, material, vertex_mass, keep, Phi):
     rmodel = FEMForceModel(X[ring], local[tets[in_ring[tets].all(axis=1)]], material)
     mr = np.repeat(vertex_mass[ring], 3)
     Rr = rigid_modes(X[ring], vertex_mass[ring])
-    P = _m_project(_full_columns(model, Phi).reshape(n, 3, -1)[ring].reshape(3 * ring.size, -1), Rr, mr)
+    P = mass_project(_full_columns(model, Phi).reshape(n, 3, -1)[ring].reshape(3 * ring.size, -1), Rr, mr)
     K = rmodel.pattern.matrix(rmodel.tangent(rmodel.X)[2])
     si = _ShiftInvert(K, mr, -SHIFT_FACTOR * lambda_scale(K, mr, rmodel.X, np.ones(3 * ring.size, bool), Rr), Rr)
     # The ring's own lowest modes deflate the refinement (the restricted modes are not its
@@ -625,7 +625,7 @@ def _m_norms(V, m):
     return np.sqrt((m[:, None] * V * V).sum(axis=0)) if V.size else np.zeros(1)
 
 
-def _mass_pca(W, m, count, reference=None):
+def mass_pca(W, m, count, reference=None):
     """Up to ``count`` dominant directions of the columns of W in the M-inner product.
 
     Thin SVD of M^1/2 W; directions with singular value <= RANK_TOL * reference (default the

@@ -26,10 +26,12 @@ from ..fem.assembly import stiffness_pattern
 from ..fem.elements import tet_geometry
 from ..fem.mass import lumped_mass
 from ..linear_solver import SparseSolver
-from ..precompute import PrecomputeCache, bases_cache_key, compliance_cache_key, cubature_cache_key
+from ..precompute import (PrecomputeCache, bases_cache_key, compliance_cache_key, contact_modes_cache_key,
+                          cubature_cache_key)
 from ..rotations import cross
 from . import reconstruct
 from .block_cholesky import BlockCholesky
+from .contact_modes import add_contact_modes
 from .contact_rows import ContactRows
 from .coupling import TwoPhaseProjection
 from .domains import FullDomain, build_subspace_domain
@@ -64,7 +66,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
     kind = "reduced"
     can_untangle = True
 
-    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None, contact_vertices=None):
+    def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None, contact_vertices=None,
+                 contact_mode_vertices=None):
         from .partition import build_partition, domain_elimination_order, domain_labels
         t_start = time.perf_counter()
         say = progress or (lambda msg: None)
@@ -148,6 +151,15 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                             {"names": list(names), "partition_notes": list(self.partition_notes),
                              "basis": {str(dom.index): {k: v for k, v in dom.basis_info.items() if k != "seconds"}
                                        for dom in self.subspace}})
+        # Contact modes (contact_modes.py): the anchors the residual compliance is measured
+        # against. Not cached: a few sparse solves; the key of every later stage includes them.
+        self.contact_modes_note = None
+        self.contact_mode_vertices = contact_mode_vertices
+        if contact_mode_vertices is not None:
+            self.subspace, self.contact_modes_note = add_contact_modes(
+                self.subspace, body, self.vertex_mass, np.asarray(contact_mode_vertices, dtype=np.int64),
+                cfg["contact_modes"], progress=say)
+            self.bases_key = contact_modes_cache_key(self.bases_key, cfg["contact_modes"], contact_mode_vertices)
         self.sub_index_of_domain = np.array([k if kind == "sub" else -1 for kind, k in self.domain_kind], dtype=np.int64)
 
         # Generalised DOF layout -------------------------------------------------
@@ -680,6 +692,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         else:
             lines.append("contact: no residual compliance: the scene has no collider, or planes only (a floor "
                          "carries a body with its modes alone; docs/method.md §14.2)")
+        if self.contact_modes_note is not None:
+            lines.append(f"contact: {self.contact_modes_note} (model.contact_modes; docs/method.md §14.3)")
         return lines
 
     def cut_elements(self, tet_ids):

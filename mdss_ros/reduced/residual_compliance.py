@@ -235,50 +235,75 @@ def _six_supports(R):
     return np.sort(piv[:6])
 
 
-def build_residual_compliance(body, layout, n_gen, vertex_mass, candidates, progress=None):
-    """ResidualCompliance of the reduced model with kinematics layout (all vertices in
-    subspace domains) on the candidate vertex ids (n_c,). Raises ValueError when a
-    candidate is pinned or not in a subspace domain."""
+def static_responses(body, vertex_mass, candidates, dofs=None, progress=None):
+    """The full-space FEM's static answers to a unit load on each DOF of each candidate:
+    u = K^+ P E_c at rest with the scene's pins, M-orthogonal to the rigid modes of a
+    floating body (P = I - M R R^T: inertia relief). Returns (u on the global DOF ids
+    dofs (len(dofs), 3 n_c), default every DOF (3 n_verts, 3 n_c); pinned DOFs are zero,
+    the full stiffness K (n_free, n_free) CSR, the pattern's free_dof (3 n_verts,) -> free
+    index or -1, R (3 n_verts, 6) or None when pinned, info)."""
     say = progress or (lambda msg: None)
     X, n = body.vertices, len(body.vertices)
     candidates = np.asarray(candidates, dtype=np.int64)
-    pinned = np.zeros(n, dtype=bool)
-    pinned[body.pinned] = True
-    if np.any(pinned[candidates]) or np.any(layout.vertex_row[candidates] < 0):
-        raise ValueError("residual compliance: candidates must be free vertices of subspace domains")
     fem = FEMForceModel(X, body.tets, body.material, pinned=body.pinned)
     K = fem.pattern.matrix(fem.tangent(X)[2])                     # (n_free, n_free), pins removed
     free_dof = fem.pattern.free_dof                               # (3 n,) -> free index or -1
     free = np.flatnonzero(free_dof >= 0)
     m_dof = np.repeat(vertex_mass, 3)[free]
     cand_dof = free_dof[(3 * candidates[:, None] + np.arange(3)).ravel()]               # (3 n_c,)
-    J = kinematics_at_rest(layout, n_gen, n)[free]                                      # (n_free, n_gen)
-    floating = not pinned.any()
+    if np.any(cand_dof < 0):
+        raise ValueError("static_responses: candidates must be free vertices")
+    dofs = np.arange(3 * n) if dofs is None else np.asarray(dofs, dtype=np.int64)
+    out_free = free_dof[dofs]                                                            # -1: pinned row
+    floating = len(body.pinned) == 0
     R = rigid_modes(X, vertex_mass) if floating else None                              # (3 n, 6)
+    Rf = R[free] if floating else None
 
-    # Full space: K u = P E_c, u M-orthogonal to the rigid modes. A floating body is held
-    # at six DOFs that carry no reaction for a self-equilibrated load.
-    held = _six_supports(R) if floating else np.zeros(0, dtype=np.int64)
+    # K u = P E_c, u M-orthogonal to the rigid modes. A floating body is held at six DOFs
+    # that carry no reaction for a self-equilibrated load.
+    held = _six_supports(Rf) if floating else np.zeros(0, dtype=np.int64)
     keep = np.setdiff1d(np.arange(len(free)), held)
     Kk = K[keep][:, keep].tocsr()
     Kk.sort_indices()
     solver = SparseSolver().factor(Kk)
     nc3 = len(cand_dof)
-    u_c = np.zeros((nc3, nc3))
-    say(f"residual compliance: {len(candidates)} vertices, {nc3} full-space solves of {len(keep)} DOFs")
-    MR = m_dof[:, None] * R if floating else None
+    u = np.zeros((len(dofs), nc3))
+    say(f"static responses: {len(candidates)} vertices, {nc3} full-space solves of {len(keep)} DOFs")
+    MR = m_dof[:, None] * Rf if floating else None
     for s in range(0, nc3, BATCH):
         cols = np.arange(s, min(s + BATCH, nc3))
         B = np.zeros((len(free), len(cols)))
         B[cand_dof[cols], np.arange(len(cols))] = 1.0
         if floating:
-            B -= MR @ R[cand_dof[cols]].T                                                # P E
+            B -= MR @ Rf[cand_dof[cols]].T                                               # P E
         U = np.zeros_like(B)
         U[keep] = np.asarray(solver.solve(B[keep])).reshape(len(keep), -1)
         if floating:
-            U -= R @ (MR.T @ U)
-        u_c[:, cols] = U[cand_dof]
+            U -= Rf @ (MR.T @ U)
+        u[out_free >= 0, s:s + len(cols)] = U[out_free[out_free >= 0]]
     solver.close()
+    return u, K, free_dof, R, {"full_dofs": int(len(keep)), "floating": bool(floating)}
+
+
+def build_residual_compliance(body, layout, n_gen, vertex_mass, candidates, progress=None):
+    """ResidualCompliance of the reduced model with kinematics layout (all vertices in
+    subspace domains) on the candidate vertex ids (n_c,). Raises ValueError when a
+    candidate is pinned or not in a subspace domain."""
+    n = len(body.vertices)
+    candidates = np.asarray(candidates, dtype=np.int64)
+    pinned = np.zeros(n, dtype=bool)
+    pinned[body.pinned] = True
+    if np.any(pinned[candidates]) or np.any(layout.vertex_row[candidates] < 0):
+        raise ValueError("residual compliance: candidates must be free vertices of subspace domains")
+    dofs = (3 * candidates[:, None] + np.arange(3)).ravel()                              # (3 n_c,)
+    u_c, K, free_dof, R, built = static_responses(body, vertex_mass, candidates, dofs=dofs, progress=progress)
+    free = np.flatnonzero(free_dof >= 0)
+    cand_dof = free_dof[dofs]
+    floating = built["floating"]
+    J = kinematics_at_rest(layout, n_gen, n)[free]                                      # (n_free, n_gen)
+    if floating:
+        R = R[free]
+        MR = np.repeat(vertex_mass, 3)[free][:, None] * R
 
     # Reduced: (J^T K J)^+ J^T P E_c through the eigenpairs of the small dense J^T K J
     # (a floating body's rigid motions are its null space).
@@ -300,7 +325,7 @@ def build_residual_compliance(body, layout, n_gen, vertex_mass, candidates, prog
     lam, Q = np.linalg.eigh(C)
     clipped = float(-lam[lam < 0].sum() / max(float(np.abs(lam).sum()), 1e-300))
     C = (Q * np.maximum(lam, 0.0)) @ Q.T
-    info = {"vertices": int(len(candidates)), "full_dofs": int(len(keep)), "floating": bool(floating),
+    info = {"vertices": int(len(candidates)), "full_dofs": built["full_dofs"], "floating": bool(floating),
             "clipped": clipped, "megabytes": C.nbytes / 1e6,
             "diagonal_ratio": float(np.median(np.diag(C) / np.maximum(np.diag(u_c), 1e-300)))}
     return ResidualCompliance.on(candidates, layout.row_domain[layout.vertex_row[candidates]], C, n, info)

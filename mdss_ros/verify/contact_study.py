@@ -12,6 +12,15 @@ contact, for:
                   full-space domain before the residual compliance, with its 20 modes)
     residual N    the reduced model with the residual contact compliance on the N surface
                   vertices nearest the colliders' paths (reduced/residual_compliance.py)
+    static N      the anchors (docs/method.md §14.3): N contact modes per domain added to the
+    local N       subspace instead of the residual compliance, from static answers to unit
+                  loads on the 50 candidate vertices, of the whole body (static) or of a
+                  patch held 4 surface edges from them (local; reduced/contact_modes.py)
+
+The patch rows are the condensed-patch anchor: a full-space region solved jointly with the
+subspace by sparse Cholesky, which condenses it onto the modes (Teng et al. 2015 condense a
+patch that follows the contact; held in place, a patch drawn where the collider presses is
+the same).
 
 Cases (the issue's targets in brackets):
 
@@ -38,8 +47,10 @@ from .reduced_reports import format_table, study_config
 CONTACT = {
     "cases": ["soft_finger", "hertz_block", "grasp"],
     "counts": [50, 200, 800],          # residual compliance: candidate vertices
+    "mode_counts": [10, 30],           # contact modes (anchors): directions per domain
+    "anchors": ["static", "local"],
 }
-QUICK = {"cases": ["soft_finger", "grasp"], "counts": [200]}
+QUICK = {"cases": ["soft_finger", "grasp"], "counts": [200], "mode_counts": [30], "anchors": ["static"]}
 
 # soft_finger: the probe reaches 3 mm at t = 0.6 s and starts to slide at 0.84 s.
 SOFT_FINGER_HOLD = (0.7, 0.83)
@@ -56,8 +67,27 @@ HERTZ_PATCH = {"model.domains": {"regions": {"contact": {"box": [[-0.03, -0.03, 
 CASE_TARGETS = {"soft_finger": (0.10, 9.0), "hertz_block": (0.05, 10.0), "grasp": (0.10, None)}
 
 
-def case_rows(case, counts):
-    """[(label, overrides)] of one case: full, modes only, the old patch, residual N."""
+def anchor_rows(case, anchors, mode_counts):
+    """[(label, overrides)]: contact modes of each family and count, without the residual
+    compliance. A scene with cubature keeps its samples per mode (soft_finger 4, hertz_block
+    10): with the samples fixed, 90 more modes per domain read soft_finger's force 17 % low
+    (one-off run), the cubature's error and not the modes'."""
+    from ..scene import load_scene, model_config
+    rows = []
+    model = model_config(load_scene(case)) if case != "grasp" else {"modes": 12, "cubature": {}}
+    samples = int((model["cubature"] or {}).get("samples", 0) or 0)
+    for kind in anchors:
+        for n in mode_counts:
+            ov = {"model.contact_compliance": 0, "model.contact_modes.kind": kind, "model.contact_modes.count": int(n)}
+            if samples:
+                ov["model.cubature.samples"] = int(round(samples * (model["modes"] + n) / model["modes"]))
+            rows.append((f"{kind} {n}", ov))
+    return rows
+
+
+def case_rows(case, counts, anchors=(), mode_counts=()):
+    """[(label, overrides)] of one case: full, modes only, the old patch, residual N, and the
+    contact-mode anchors."""
     rows = [("full", {"model.kind": "full"})]
     if case == "soft_finger":
         rows += [("modes only", {"model.contact_compliance": 0}),
@@ -72,7 +102,7 @@ def case_rows(case, counts):
         rows += [(f"residual {n}", {"model.contact_compliance": int(n)}) for n in counts]
     else:
         raise ValueError(f"contact study: unknown case {case!r} (cases: soft_finger, hertz_block, grasp)")
-    return rows
+    return rows + anchor_rows(case, anchors, mode_counts)
 
 
 def _timeline_hold(scene_name, overrides, hold, collider):
@@ -117,6 +147,7 @@ def run_row(case, label, overrides):
     return {"case": case, "model": label, "overrides": overrides, "force": force, "step_ms": ms, "step_ms_p90": p90,
             "dofs": int(sim.stats()["dofs"]), "build_s": float(sim.build_seconds),
             "compliance_vertices": int(comp.n) if comp is not None else 0,
+            "contact_modes": getattr(sim.model, "contact_modes_note", None),
             "wall_s": time.perf_counter() - t0}
 
 
@@ -125,7 +156,7 @@ def contact_report(out, quick=False, overrides=None, log=None):
     log = log or print
     rows = []
     for case in cfg["cases"]:
-        for label, ov in case_rows(case, cfg["counts"]):
+        for label, ov in case_rows(case, cfg["counts"], cfg.get("anchors", ()), cfg.get("mode_counts", ())):
             row = run_row(case, label, ov)
             rows.append(row)
             log(f"{case} {label}: force {row['force']:.4g} N, step {row['step_ms']:.3g} ms (p90 "
@@ -159,10 +190,12 @@ def error_vs_cost(rows, cases, path):
         full = next(r for r in rows if r["case"] == case and r["model"] == "full")
         styles = {"residual": dict(color="tab:blue", marker="o", label="residual compliance (N vertices)"),
                   "modes only": dict(color="tab:red", marker="s", label="modes only"),
-                  "patch": dict(color="tab:gray", marker="^", label="full-space patch (old remedy)")}
+                  "patch": dict(color="tab:gray", marker="^", label="full-space patch (condensed)"),
+                  "static": dict(color="tab:green", marker="D", label="static contact modes (N a domain)"),
+                  "local": dict(color="tab:purple", marker="v", label="local contact modes (N a domain)")}
         seen, k_res = set(), 0
         for r in mine:
-            kind = "residual" if r["model"].startswith("residual") else \
+            kind = r["model"].split()[0] if r["model"].split()[0] in ("residual", "static", "local") else \
                 "modes only" if r["model"] == "modes only" else "patch"
             style = dict(styles[kind])
             if kind in seen:
@@ -171,10 +204,10 @@ def error_vs_cost(rows, cases, path):
             err = max(abs(100 * r["error"]), 1e-2)
             ax.loglog(r["step_ms"], err, ls="none", **style)
             # Residual rows of one case often read the same force: their counts stack.
-            text, dy = (r["model"].split()[-1], 4 + 9 * k_res) if kind == "residual" else (r["model"], 3)
+            text, dy = (r["model"].split()[-1], 4 + 9 * k_res) if kind == "residual" else \
+                (r["model"].split()[-1], 3) if kind in ("static", "local") else (r["model"], 3)
             k_res += kind == "residual"
             ax.annotate(text, (r["step_ms"], err), fontsize=7, xytext=(4, dy), textcoords="offset points")
-        ax.legend(fontsize=7, loc="center right")
         bound, ms_bound = CASE_TARGETS[case]
         ax.axhline(100 * bound, color="k", lw=0.6, ls=":")
         if ms_bound:
@@ -187,4 +220,11 @@ def error_vs_cost(rows, cases, path):
         from matplotlib.ticker import NullFormatter
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.yaxis.set_minor_formatter(NullFormatter())
-    return save_figure(fig, path)
+    # One legend for all panels, below them: inside a panel it hid the points behind it.
+    handles = {}
+    for ax in axes[0]:
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, h)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=len(handles), fontsize=7,
+               frameon=False)
+    return save_figure(fig, path, rect=(0, 0.08, 1, 1))

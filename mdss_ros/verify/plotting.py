@@ -13,8 +13,10 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path):
-    fig.tight_layout()
+def save_figure(fig, path, rect=None):
+    """Lay out (within rect (left, bottom, right, top) of the figure, default all of it),
+    save at 110 dpi and close; the path as str."""
+    fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=110)
     pyplot().close(fig)
     return str(path)
