@@ -460,6 +460,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         # because the next step's slip is measured from it.
         self._dent = np.zeros((self.compliance.n if self.compliance is not None else 0, 3))
         self._start_eval = None         # the evaluation at the current state (_start_evaluation)
+        self.timing = {}                # phase times of the step in progress (Step._step)
         self._positions_kept = []       # positions_of at the current state, two ids arrays
 
     def _full_rows(self, a):
