@@ -342,10 +342,11 @@ class Step:
         computed once per state: the cache holds the state objects it was computed from
         (every step and set_state replace them) and is dropped when a step takes it."""
         # Cutting replaces _full_alive: the forces changed, so it is part of the key.
-        state = (self.q, self.frames, self.x_full, self._full_alive)
         c = self._start_eval
-        if c is None or not all(a is b for a, b in zip(c[0], state)):
+        # Compared one by one, not all() over a generator: this runs twice a guarded step.
+        if c is None or not (c[0][0] is self.q and c[0][1] is self.frames and c[0][2] is self.x_full
+                             and c[0][3] is self._full_alive):
             result = self._evaluate(self.q, self.frames, self.x_full)
-            c = (state, result, self.evaluation_timing)
+            c = ((self.q, self.frames, self.x_full, self._full_alive), result, self.evaluation_timing)
         self._start_eval = None if take else c
         return c[1], c[2]
