@@ -170,38 +170,44 @@ class StabilityGuard:
     def judge(self, before, after, work, model_stats, gravity):
         """Verdict on a (sub-)step from Measure before to Measure after, with work W of the
         applied loads and contacts over it and the model's step stats."""
+        hard, soft, growth = self._signs(before, after, work, model_stats, gravity)
+        return Verdict(hard=list(hard), soft=list(soft), growth=growth, inverted=after.inverted)
+
+    def _signs(self, before, after, work, model_stats, gravity):
+        """judge's checks as (hard signs, soft signs, growth): tuples, () when there are
+        none, so the common case (a step that passes) builds no Verdict and no list."""
         s = self.settings
-        out = Verdict(inverted=after.inverted)
         if not after.finite:
-            out.hard.append("non-finite")
-            return out
+            return ("non-finite",), (), 0.0
+        hard, soft = (), ()
+        floor = self._floor if self._floor is not None else self._scale_floor(gravity)
         scale = (before.kinetic + max(before.elastic, 0.0) + abs(work) + abs(after.gravity - before.gravity)
-                 + self._scale_floor(gravity))
-        out.growth = (after.total - before.total - work) / scale
-        if out.growth > s.energy_growth:
-            out.hard.append("energy")
-        elif out.growth > 0.0 and self._ledger is not None:
+                 + floor)
+        growth = (after.total - before.total - work) / scale
+        if growth > s.energy_growth:
+            hard = ("energy",)
+        elif growth > 0.0 and self._ledger is not None:
             # Slow creation: each step under the bound, the run's total over it.
             E0, W, run_scale = self._ledger
             run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
             if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
-                out.hard.append("energy drift")
+                hard = ("energy drift",)
         if after.speed is not None:
             speed = after.speed
         else:
             speed = float(np.sqrt((after.v * after.v).sum(1).max())) if len(after.v) else 0.0
         if speed > s.max_speed:
-            out.hard.append("speed")
+            hard += ("speed",)
         if s.inversion and after.inverted > before.inverted:
-            out.soft.append("inversion")
+            soft = ("inversion",)
         res = model_stats.get("residual") if isinstance(model_stats, dict) else None
         if model_stats.get("newton_iterations", 1) > 1 and res is not None and not res <= NEWTON_DIVERGED:
-            out.soft.append("newton")
+            soft += ("newton",)
         elif model_stats.get("newton_stalled") == "first":
             # The reduced line search found no descent from the first iterate, and the step
             # ended with no relative motion (reduced/step.py, Step._line_search).
-            out.soft.append("newton")
-        return out
+            soft += ("newton",)
+        return hard, soft, growth
 
     def _current(self, gravity, step_count):
         if self._cached is None or self._cached[0] != step_count:
@@ -244,6 +250,10 @@ class StabilityGuard:
         ladder = self._ladder()
         attempt, best, stats, verdict, after, first_reason = self._walk(ladder, advance, save, restore, snap,
                                                                         before, f_app, gravity, dt)
+        if attempt == 0 and not after.inverted and not self._projected[0]:
+            # The common case, the model's own step passed and left no inverted element:
+            # its report without the branches below (they run after every step).
+            return stats, self._stable(stats, verdict, after, step_count)
         start_untangled = None
         if attempt is None and best is None and before.inverted:
             # No rung passes from a tangled start (inverted elements the last steps kept):
@@ -311,6 +321,26 @@ class StabilityGuard:
         report["guard_work"] = float(self._work)         # work of loads and contacts over the step
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
+
+    def _stable(self, stats, verdict, after, step_count):
+        """The report and bookkeeping of _step for a step whose first rung passed with no
+        energy projection and left no inverted element (the same keys, values and totals as
+        _step's general path gives it: "stable", one attempt, one sub-step)."""
+        totals = self.totals
+        totals["guard_substeps_total"] += 1
+        if isinstance(stats, dict) and stats.get("indefinite_system"):
+            totals["guard_indefinite_steps"] += 1       # see _step
+        self._inverted_run = 0                          # _untangle with nothing inverted
+        self._cached = (step_count + 1, after)
+        if self._ledger is not None:                    # after is finite: the rung passed
+            E0, W, run_scale = self._ledger
+            W += self._work
+            self._ledger = (E0, W, max(run_scale, self._run_scale(after, W)))
+        report = {"guard_attempts": 1, "guard_reason": "", "guard_substeps": 1, "guard_action": "",
+                  "stability": "stable", "guard_projected": 0.0, "energy_growth": float(verdict.growth),
+                  "guard_work": float(self._work)}
+        report.update(totals, guard_last_event=self.last_event)
+        return report
 
     def _walk(self, ladder, advance, save, restore, snap, before, f_app, gravity, dt):
         """Try the ladder's rungs from the snapshot until one passes. Returns (attempt index
@@ -444,6 +474,8 @@ class StabilityGuard:
         Returns (model stats, Verdict, Measure after) and stops at the first bad sub-step."""
         model = self.model
         # The first rung is the model's own step: no options to apply.
+        if n_sub == 1 and not newton and not implicit and not project:
+            return self._own_step(advance, before, f_app, gravity)
         options = (None if n_sub == 1 and not newton and not implicit else
                    StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None))
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
@@ -482,6 +514,33 @@ class StabilityGuard:
             self._work += work
             prev = after
         return stats, verdict, prev
+
+    def _own_step(self, advance, before, f_app, gravity):
+        """_attempt for the model's own step (one sub-step, no StepOptions, no projection: the
+        first rung, run every step): what _attempt's loop does for it, with one Verdict
+        built instead of three and the checks read from _signs."""
+        self._work = 0.0
+        self._projected = (0, 0.0)
+        try:
+            stats = advance(1, 1, None)
+        except MdssError:
+            raise
+        except NUMERICAL_ERRORS as err:
+            self.last_error = f"{type(err).__name__}: {err}"
+            return {"error": self.last_error}, Verdict(hard=["non-finite"]), before
+        model = self.model
+        after = model.guard_measure(gravity, self.settings.inversion)
+        if isinstance(stats, dict):
+            work = _work(f_app, before, after, model.contact, stats.get("external_work"), stats.get("contact_work"))
+        else:
+            work = _work(f_app, before, after, model.contact)
+        hard, soft, growth = self._signs(before, after, work, stats, gravity)
+        if hard:
+            return stats, Verdict(hard=list(hard), soft=list(soft), growth=growth, inverted=after.inverted), after
+        self._work += work
+        # As _attempt's merge into its Verdict(growth=-inf) (max(-inf, growth): the same float).
+        return stats, Verdict(soft=sorted(set(soft)) if soft else [], growth=max(-np.inf, growth),
+                              inverted=after.inverted), after
 
 
 def mean_motion(model):

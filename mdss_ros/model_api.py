@@ -33,8 +33,10 @@ class Model(Protocol):
 
     def reset(self): ...
 
-    def get_state(self):
-        """A snapshot (copies) that set_state restores exactly."""
+    def get_state(self, share=False):
+        """A snapshot (copies) that set_state restores exactly. share=True: arrays the model
+        only ever replaces may be shared instead of copied (a rollback around steps, the
+        stability guard's); set_state copies them back."""
 
     def set_state(self, state): ...
 

@@ -278,8 +278,12 @@ class Simulator:
         return self._step_with_colliders(f_app, options)
 
     def _save(self):
-        """Everything a step changes: the model state and the collider sweep bookkeeping."""
-        return (self.model.get_state(), dict(self._collider_start),
+        """Everything a step changes: the model state and the collider sweep bookkeeping.
+        Only the guard saves, to roll back steps, so the model may share what its steps
+        replace rather than copy it (get_state(share=True))."""
+        if not self.colliders:             # every step: no sweep bookkeeping (_collider_start is {})
+            return self.model.get_state(share=True), {}, {}
+        return (self.model.get_state(share=True), dict(self._collider_start),
                 {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()})
 
     def _restore(self, snapshot):

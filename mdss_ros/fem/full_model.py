@@ -90,9 +90,11 @@ class VertexState:
     def positions_of(self, ids):
         return self.x[ids]
 
-    def get_state(self):
+    def get_state(self, share=False):
         """A snapshot of the dynamic state (copies): {"x", "v" (n_verts, 3), "contact"}.
-        set_state(snapshot) restores it exactly (the stability guard rolls back with it)."""
+        set_state(snapshot) restores it exactly (the stability guard rolls back with it).
+        share (model_api.Model.get_state) changes nothing here: x and v are written in
+        place (pinned rows, set_rigid_velocity), so they are always copied."""
         return {"x": self.x.copy(), "v": self.v.copy(), "contact": self.contact}
 
     def set_state(self, x, v=None):

@@ -45,11 +45,11 @@ class GuardTerms:
                       L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
         # x_full / v_full hold every vertex but only full-space rows are state: checking
         # them on a model without full-space domains was a third of this measure.
-        finite = bool(out[0]) and (not self.F or (np.isfinite(self.x_full).all()
-                                                  and np.isfinite(self.v_full).all()))
+        ok, kinetic, grav, speed = out.tolist()          # Python floats, in one call
+        finite = bool(ok) and (not self.F or (np.isfinite(self.x_full).all()
+                                              and np.isfinite(self.v_full).all()))
         if not finite:
             return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
-        kinetic, grav, speed = float(out[1]), float(out[2]), float(out[3])
         if self.F:
             m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
             kinetic += 0.5 * float((m * (self.v_full * self.v_full).sum(1)).sum())
@@ -60,7 +60,9 @@ class GuardTerms:
         except (ArithmeticError, ValueError, RuntimeError):
             elastic = np.nan
         inverted = self._guard_inverted() if check_inversion else 0
-        finite = all(math.isfinite(v) for v in (kinetic, elastic, grav, speed))
+        # Spelled out, not all() over a generator: this runs after every step.
+        finite = (math.isfinite(kinetic) and math.isfinite(elastic) and math.isfinite(grav)
+                  and math.isfinite(speed))
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
 
     def mean_motion(self):
@@ -151,10 +153,15 @@ class GuardTerms:
         coordinates, and the coupling elements' vertices are in the start evaluation of the
         next step (which the guard's energy check has just made)."""
         n = self.samples.inverted_count(self.q) if self.samples is not None else 0
+        if not self.F and not len(self.c_elem) and self.samples is not None:
+            return n              # _guard_tets has nothing: the forces sample cubature points only
         x_I = None
-        if self.coupling_kind == "element":
+        # Without coupling elements (one domain) there is nothing to read from x_I, and
+        # _guard_tets gives the same elements either way: skip the identity check.
+        if self.coupling_kind == "element" and len(self.c_elem):
             c = self._start_eval
-            if c is not None and all(a is b for a, b in zip(c[0], (self.q, self.frames, self.x_full, self._full_alive))):
+            if c is not None and (c[0][0] is self.q and c[0][1] is self.frames and c[0][2] is self.x_full
+                                  and c[0][3] is self._full_alive):
                 x_I = c[1][6]
         ids, local = self._guard_tets(coupling=x_I is None)
         if len(ids):

@@ -89,6 +89,10 @@ class Step:
             coriolis, centrifugal = self._fictitious_matrices(self.frames)
             Qn = self._modal_coriolis_rotate(coriolis, Qn, dt)
         (G, K_ss, K_sI, K_ff, energy, J, x_I), timing = self._start_evaluation(take=True)
+        # The step's phase times, reset here once: the start evaluation's (made above or,
+        # under the stability guard, by its measure after the last step), then every
+        # evaluation and solve below adds its own (Newton iterations, line search).
+        self.timing = dict(timing)
         # Dgen = alpha Mgen + beta K (step start); with implicit fictitious forces the
         # centrifugal force K_cf q at the end of the step, K_cf q_n (explicit, in Fn) + dt
         # K_cf qd', is a velocity term, hence in Dgen (it enters A as -dt^2 K_cf).
@@ -209,8 +213,8 @@ class Step:
         self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
                       "contact_work": contact_work,
                       "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
-                      "domain_ms": timing["domain_ms"],
-                      "coupling_ms": timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
+                      "domain_ms": self.timing["domain_ms"],
+                      "coupling_ms": self.timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
                       "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
                       "angular_momentum_correction": self._dW,
                       "line_search_cuts": cuts, "newton_damped": int(damped), "newton_stalled": stalled,
@@ -338,10 +342,11 @@ class Step:
         computed once per state: the cache holds the state objects it was computed from
         (every step and set_state replace them) and is dropped when a step takes it."""
         # Cutting replaces _full_alive: the forces changed, so it is part of the key.
-        state = (self.q, self.frames, self.x_full, self._full_alive)
         c = self._start_eval
-        if c is None or not all(a is b for a, b in zip(c[0], state)):
+        # Compared one by one, not all() over a generator: this runs twice a guarded step.
+        if c is None or not (c[0][0] is self.q and c[0][1] is self.frames and c[0][2] is self.x_full
+                             and c[0][3] is self._full_alive):
             result = self._evaluate(self.q, self.frames, self.x_full)
-            c = (state, result, dict(self.timing))
+            c = ((self.q, self.frames, self.x_full, self._full_alive), result, self.evaluation_timing)
         self._start_eval = None if take else c
         return c[1], c[2]
