@@ -234,12 +234,13 @@ def test_local_contact_modes_are_patch_answers_with_compact_support():
     """Each local field solves K u = e on the patch's free DOFs and is zero on every vertex
     farther than the radius from all candidates (held there)."""
     from mdss_ros.reduced.contact_modes import local_responses
+    from mdss_ros.reduced.residual_compliance import static_responses
     sim = Simulator(_block(True, contact_compliance=0))
     body = sim.model.body
     top = np.flatnonzero(np.isclose(body.vertices[:, 2], 0.04))
     cand = top[np.argsort(np.linalg.norm(body.vertices[top, :2], axis=1))[:3]]
     radius = 0.021
-    fields, patch = local_responses(body, cand, radius)
+    fields, patch = local_responses(body, sim.model.vertex_mass, cand, radius)
     X = body.vertices
     far = np.linalg.norm(X[:, None] - X[cand][None], axis=2).min(axis=1) > radius
     assert 0 < patch < len(X) and patch == int((~far).sum())
@@ -252,6 +253,11 @@ def test_local_contact_modes_are_patch_answers_with_compact_support():
     E = np.zeros((3 * len(X), 3 * len(cand)))
     E[(3 * cand[:, None] + np.arange(3)).ravel(), np.arange(3 * len(cand))] = 1.0
     np.testing.assert_allclose((K @ fields)[inside], E[inside], atol=1e-9 * np.abs(K @ fields).max())
+    # A patch that covers a floating body holds nothing: the static family's answers.
+    free = Simulator(_block(False, contact_compliance=0)).model
+    whole, patch = local_responses(free.body, free.vertex_mass, cand, 1.0)
+    assert patch == len(X) and len(free.body.pinned) == 0
+    np.testing.assert_array_equal(whole, static_responses(free.body, free.vertex_mass, cand)[0])
 
 
 def test_static_contact_modes_bring_a_shallow_press_to_the_full_fem_force():

@@ -49,7 +49,7 @@ KINDS = ("static", "local")
 LOCAL_RADIUS_EDGES = 4.0
 
 
-def local_responses(body, candidates, radius, progress=None):
+def local_responses(body, vertex_mass, candidates, radius, progress=None):
     """(3 n, 3 n_c) the answers to a unit load on each candidate DOF with every vertex
     farther than radius (m) from all candidates held (and the scene's pins): zero outside
     the patch. Returns (fields, patch vertex count)."""
@@ -58,6 +58,11 @@ def local_responses(body, candidates, radius, progress=None):
     candidates = np.asarray(candidates, dtype=np.int64)
     near = cKDTree(X[candidates]).query(X, distance_upper_bound=radius)[0] <= radius     # (n,)
     held = np.flatnonzero(~near)
+    if held.size == 0 and len(body.pinned) == 0:
+        # The patch is the whole floating body: nothing holds it, and its answers are the
+        # static family's (inertia relief). The 4 cm grasp cube's patch, solved as it was,
+        # read its pads' force at 36 times full FEM's.
+        return static_responses(body, vertex_mass, candidates, progress=progress)[0], n
     fem = FEMForceModel(X, body.tets, body.material, pinned=np.union1d(held, body.pinned))
     K = fem.pattern.matrix(fem.tangent(X)[2]).tocsr()
     K.sort_indices()
@@ -91,7 +96,7 @@ def contact_fields(body, vertex_mass, candidates, settings, progress=None):
             faces = body.surface.faces
             edges = body.vertices[faces[:, [1, 2, 0]]] - body.vertices[faces]
             radius = LOCAL_RADIUS_EDGES * float(np.linalg.norm(edges, axis=2).mean())
-        fields, patch = local_responses(body, candidates, radius, progress=progress)
+        fields, patch = local_responses(body, vertex_mass, candidates, radius, progress=progress)
         return fields, {"kind": kind, "radius": radius, "patch_vertices": patch}
     raise ValueError(f"contact modes: kind {kind!r} (one of {', '.join(KINDS)})")
 
