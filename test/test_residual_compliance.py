@@ -269,3 +269,36 @@ def test_static_contact_modes_bring_a_shallow_press_to_the_full_fem_force():
                           contact_modes={"kind": "static", "vertices": 9, "count": 27})
     assert sim.model.compliance is None
     assert abs(f_modes / f_full - 1.0) < 0.03, (f_full, f_modes)
+
+
+def test_interface_modes_hold_the_static_answer_to_interface_loads():
+    """model.basis.interface_modes: every domain gets the static answers to unit loads on
+    the coupling elements' free vertices. With all of them, the Galerkin answer of the
+    two-domain block to any load on those vertices is the full-space FEM's on every DOF
+    (each vertex belongs to one domain, so each domain's share of a field is in its span);
+    with none it is far off."""
+    base = Simulator(_block(True, contact_compliance=0)).model
+    body = base.body
+    iface = np.setdiff1d(np.unique(body.tets[base.c_tets]), body.pinned)
+    n = 3 * len(iface)
+    sim = Simulator(_block(True, contact_compliance=0, basis={"interface_modes": n}))
+    m = sim.model
+    # Fewer than n directions a domain are independent (rank of the fields on its vertices).
+    assert all(8 < d.U.shape[1] <= 8 + n for d in m.subspace)
+    assert any("static interface modes" in line for line in sim.explain())
+    fem = FEMForceModel(body.vertices, body.tets, body.material, pinned=body.pinned)
+    K = fem.pattern.matrix(fem.tangent(body.vertices)[2]).toarray()
+    free = np.flatnonzero(fem.pattern.free_dof >= 0)
+    f = np.zeros(len(free))
+    f[fem.pattern.free_dof[(3 * iface[:, None] + np.arange(3)).ravel()]] = np.random.default_rng(4).normal(size=n)
+    u = np.linalg.solve(K, f)
+
+    def galerkin(model):
+        J = kinematics_at_rest(model.layout, model.n_gen, len(body.vertices)).toarray()[free]
+        return J @ np.linalg.solve(J.T @ K @ J, J.T @ f)
+
+    np.testing.assert_allclose(galerkin(m), u, atol=1e-7 * np.abs(u).max())
+    assert np.linalg.norm(galerkin(base) - u) > 0.2 * np.linalg.norm(u)
+    from mdss_ros.errors import SceneError
+    with pytest.raises(SceneError, match="interface_modes"):
+        Simulator(_block(True, basis={"interface_modes": -1}))

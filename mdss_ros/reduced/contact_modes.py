@@ -116,10 +116,11 @@ def domain_contact_modes(dom, fields, count):
     return mass_orthonormalise(Y, m) if Y.shape[1] else Y
 
 
-def add_contact_modes(subspace, body, vertex_mass, candidates, settings, progress=None):
+def add_contact_modes(subspace, body, vertex_mass, candidates, settings, progress=None, what="contact modes"):
     """The subspace domains with contact modes appended where they hold candidates
     (list of SubspaceDomain), and a note for `--explain`. candidates (n_c,) global free
-    vertex ids in subspace domains."""
+    vertex ids in subspace domains. The same modes on the coupling elements' vertices
+    are interface (attachment) modes (what="interface modes", model.basis.interface_modes)."""
     say = progress or (lambda msg: None)
     fields, built = contact_fields(body, vertex_mass, candidates, settings, progress=say)
     count = int(settings["count"])
@@ -133,7 +134,7 @@ def add_contact_modes(subspace, body, vertex_mass, candidates, settings, progres
         out.append(dataclasses.replace(dom, U=np.hstack([dom.U, Y]),
                                        basis_info=dict(dom.basis_info, contact_modes=int(Y.shape[1]))))
     extra = ", radius {radius:.4g} m, patch of {patch_vertices} vertices".format(**built) if "radius" in built else ""
-    note = (f"{built['kind']} contact modes on {len(candidates)} candidate vertices{extra}: "
+    note = (f"{built['kind']} {what} on {len(candidates)} vertices{extra}: "
             + ", ".join(f"{name} +{q}" for name, q in added.items()))
-    say(f"contact modes: {note}")
+    say(f"{what}: {note}")
     return out, note

@@ -116,6 +116,12 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         # model.basis.modes: {domain name: r} overrides model.modes for those domains (a hub
         # that carries the moments of several limbs needs more modes than each limb).
         modes_by_name = basis_opts.pop("modes", None) or {}
+        # model.basis.interface_modes: static answers to loads on the coupling elements'
+        # vertices added to each domain (contact_modes.py; Craig-Bampton-like attachment
+        # modes, docs/method.md §6.3).
+        interface_modes = basis_opts.pop("interface_modes", 0)
+        if isinstance(interface_modes, bool) or not isinstance(interface_modes, int) or interface_modes < 0:
+            raise SceneError(f"model.basis.interface_modes must be an integer >= 0, got {interface_modes!r}")
         if not isinstance(modes_by_name, dict) or set(modes_by_name) - set(names) or not all(
                 isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in modes_by_name.values()):
             raise SceneError(f"model.basis.modes must map domain names ({', '.join(map(str, names))}) to positive "
@@ -151,8 +157,16 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                             {"names": list(names), "partition_notes": list(self.partition_notes),
                              "basis": {str(dom.index): {k: v for k, v in dom.basis_info.items() if k != "seconds"}
                                        for dom in self.subspace}})
-        # Contact modes (contact_modes.py): the anchors the residual compliance is measured
-        # against. Not cached: a few sparse solves; the key of every later stage includes them.
+        # Interface and contact modes (contact_modes.py). Not cached: a few sparse solves;
+        # the key of every later stage includes them.
+        self.interface_modes_note = None
+        if interface_modes and len(part.coupling_elements):
+            ids = np.setdiff1d(np.unique(tets[np.asarray(part.coupling_elements, dtype=np.int64)]), body.pinned)
+            self.subspace, self.interface_modes_note = add_contact_modes(
+                self.subspace, body, self.vertex_mass, ids, {"kind": "static", "count": interface_modes},
+                progress=say, what="interface modes")
+            self.bases_key = contact_modes_cache_key(self.bases_key, {"interface_modes": interface_modes}, ids)
+        # Contact modes: the anchors the residual compliance is measured against.
         self.contact_modes_note = None
         self.contact_mode_vertices = contact_mode_vertices
         if contact_mode_vertices is not None:
@@ -708,6 +722,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                          "carries a body with its modes alone; docs/method.md §14.2)")
         if self.contact_modes_note is not None:
             lines.append(f"contact: {self.contact_modes_note} (model.contact_modes; docs/method.md §14.3)")
+        if self.interface_modes_note is not None:
+            lines.append(f"bases: {self.interface_modes_note} (model.basis.interface_modes; docs/method.md §6.3)")
         return lines
 
     def cut_elements(self, tet_ids):
