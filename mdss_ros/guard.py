@@ -199,16 +199,22 @@ class StabilityGuard:
             return ("non-finite",), (), 0.0
         hard, soft = (), ()
         floor = self._floor if self._floor is not None else self._scale_floor(gravity)
-        scale = (before.kinetic + max(before.elastic, 0.0) + abs(work) + abs(after.gravity - before.gravity)
-                 + floor)
-        growth = (after.total - before.total - work) / scale
+        # Measure.total and _run_scale spelled out, the same operations in the same order:
+        # this runs after every step, and their calls were a third of it.
+        b_kinetic, b_elastic, b_gravity = before.kinetic, before.elastic, before.gravity
+        a_elastic, a_gravity = after.elastic, after.gravity
+        a_total = after.kinetic + a_elastic + a_gravity
+        scale = b_kinetic + max(b_elastic, 0.0) + abs(work) + abs(a_gravity - b_gravity) + floor
+        growth = (a_total - (b_kinetic + b_elastic + b_gravity) - work) / scale
         if growth > s.energy_growth:
             hard = ("energy",)
         elif growth > 0.0 and self._ledger is not None:
             # Slow creation: each step under the bound, the run's total over it.
             E0, W, run_scale = self._ledger
-            run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
-            if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
+            run_work = W + self._work + work
+            run_scale = max(run_scale, after.kinetic + max(a_elastic, 0.0) + abs(run_work)
+                            + abs(a_gravity - self._G0) + floor)          # _run_scale(after, run_work)
+            if (a_total - E0 - W - self._work - work) / run_scale > s.energy_growth:
                 hard = ("energy drift",)
         if after.speed is not None:
             speed = after.speed
@@ -276,7 +282,10 @@ class StabilityGuard:
         dt = self.model.dt
         self._gravity = gravity
         self._work = 0.0
-        before = self._current(gravity, step_count)
+        c = self._cached
+        # _current's common case: the state the last step ended in, measured by it.
+        before = c[1] if c is not None and c[0] == step_count and self._ledger is not None else \
+            self._current(gravity, step_count)
         snap = save()
         ladder = self._ladder()
         first = None
@@ -378,7 +387,10 @@ class StabilityGuard:
         if ledger is not None:                          # after is finite: the rung passed
             E0, W, run_scale = ledger
             W += work
-            self._ledger = (E0, W, max(run_scale, self._run_scale(after, W)))
+            # _run_scale(after, W), spelled out (_signs has set the floor)
+            floor = self._floor if self._floor is not None else self._scale_floor(self._gravity)
+            self._ledger = (E0, W, max(run_scale, after.kinetic + max(after.elastic, 0.0) + abs(W)
+                                       + abs(after.gravity - self._G0) + floor))
         # A copy of the constant part, then the step's values into its placeholders (a
         # dict display of eight keys and update(..., key=) cost more, every step).
         report = _STABLE_REPORT.copy()
@@ -584,7 +596,11 @@ class StabilityGuard:
         model = self.model
         after = model.guard_measure(gravity, self.settings.inversion)
         if isinstance(stats, dict):
-            work = _work(f_app, before, after, model.contact, stats.get("external_work"), stats.get("contact_work"))
+            mw, cw = stats.get("external_work"), stats.get("contact_work")
+            if mw is not None and (cw is not None or not model.contact):
+                work = float(mw) + (float(cw) if cw is not None else 0.0)     # _work's first case
+            else:
+                work = _work(f_app, before, after, model.contact, mw, cw)
         else:
             work = _work(f_app, before, after, model.contact)
         signs = self._signs(before, after, work, stats, gravity)

@@ -59,15 +59,17 @@ def frame_measure(q, qd, c, R, v, w, P, g):
     """
     D, r = q.shape
     movable, total_mass, rho, sigma, inertia0, mass_r, mass_moment, B1, B2, W = _unpack(P, D, r)
-    D, r = q.shape
     finite = True
     kinetic = 0.0
     grav = 0.0
     speed = 0.0
-    wl = np.empty(3)
-    L = np.empty((3, 3))
-    B = np.empty((3, 3))
-    p = np.empty(3)
+    # One scratch allocation for the four small work arrays (each np.empty is a heap
+    # allocation in compiled code too).
+    scratch = np.empty(24)
+    wl = scratch[0:3]
+    L = scratch[3:12].reshape((3, 3))
+    B = scratch[12:21].reshape((3, 3))
+    p = scratch[21:24]
     for d in range(D):
         qq = 0.0
         qdqd = 0.0
