@@ -79,6 +79,15 @@ from .loads import sparse_loads
 from .step_options import StepOptions
 from .state_measure import Measure, inverted_tets  # noqa: F401  (guard.Measure, guard.inverted_tets)
 
+try:
+    # What np.errstate sets and resets (numpy >= 2): the floating-point context is a
+    # contextvar holding an "extobj" made by _make_extobj. StabilityGuard.step sets it
+    # itself with an extobj made once per context it starts from; np.errstate builds a new
+    # one on every entry (about 0.7 us of the guard's ~10 us, every step).
+    from numpy._core._ufunc_config import _extobj_contextvar, _make_extobj
+except ImportError:                        # another numpy: np.errstate as it is
+    _extobj_contextvar = _make_extobj = None
+
 #: Exceptions a diverging step raises (singular or indefinite systems, SVD of NaN,
 #: "array must not contain infs or NaNs"). Configuration errors (MdssError) pass through.
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, RuntimeError)
@@ -91,6 +100,14 @@ NEWTON_DIVERGED = 10.0
 MARGIN = 0.5
 #: Hard signs an energy projection may clear (see project_energy).
 ENERGY_SIGNS = frozenset(("energy", "energy drift"))
+#: The ladder's rung for the model's own step: one sub-step, its own Newton iterations and
+#: fictitious forces, no energy projection (StabilityGuard._ladder, _own_step).
+OWN_RUNG = (1, None, False, False)
+#: The report of a step whose own step passed (StabilityGuard._stable), in _step's key
+#: order; energy_growth and guard_work are placeholders, the totals and guard_last_event
+#: follow.
+_STABLE_REPORT = {"guard_attempts": 1, "guard_reason": "", "guard_substeps": 1, "guard_action": "",
+                  "stability": "stable", "guard_projected": 0.0, "energy_growth": 0.0, "guard_work": 0.0}
 
 
 @dataclass
@@ -142,6 +159,7 @@ class StabilityGuard:
         self.settings = settings or GuardSettings()
         self._ladder_for = None
         self._floor = None
+        self._fp_from = self._fp_ignore = None       # step's floating-point context
         self.reset()
 
     def reset(self):
@@ -181,16 +199,22 @@ class StabilityGuard:
             return ("non-finite",), (), 0.0
         hard, soft = (), ()
         floor = self._floor if self._floor is not None else self._scale_floor(gravity)
-        scale = (before.kinetic + max(before.elastic, 0.0) + abs(work) + abs(after.gravity - before.gravity)
-                 + floor)
-        growth = (after.total - before.total - work) / scale
+        # Measure.total and _run_scale spelled out, the same operations in the same order:
+        # this runs after every step, and their calls were a third of it.
+        b_kinetic, b_elastic, b_gravity = before.kinetic, before.elastic, before.gravity
+        a_elastic, a_gravity = after.elastic, after.gravity
+        a_total = after.kinetic + a_elastic + a_gravity
+        scale = b_kinetic + max(b_elastic, 0.0) + abs(work) + abs(a_gravity - b_gravity) + floor
+        growth = (a_total - (b_kinetic + b_elastic + b_gravity) - work) / scale
         if growth > s.energy_growth:
             hard = ("energy",)
         elif growth > 0.0 and self._ledger is not None:
             # Slow creation: each step under the bound, the run's total over it.
             E0, W, run_scale = self._ledger
-            run_scale = max(run_scale, self._run_scale(after, W + self._work + work))
-            if (after.total - E0 - W - self._work - work) / run_scale > s.energy_growth:
+            run_work = W + self._work + work
+            run_scale = max(run_scale, after.kinetic + max(a_elastic, 0.0) + abs(run_work)
+                            + abs(a_gravity - self._G0) + floor)          # _run_scale(after, run_work)
+            if (a_total - E0 - W - self._work - work) / run_scale > s.energy_growth:
                 hard = ("energy drift",)
         if after.speed is not None:
             speed = after.speed
@@ -238,22 +262,47 @@ class StabilityGuard:
         # One floating-point context for the whole step, retries and measures included: the
         # guard's business is non-finite states, and entering np.errstate costs a few us,
         # which was a tenth of the guard's own time on a 12-DOF model.
-        with np.errstate(all="ignore"):
+        cv = _extobj_contextvar
+        if cv is None:
+            with np.errstate(all="ignore"):
+                return self._step(advance, save, restore, f_app, gravity, step_count)
+        # np.errstate(all="ignore") exactly: _make_extobj takes what it is not given (buffer
+        # size, error callback) from the current context, so the extobj is made again
+        # whenever the current context is another object than the one it was made from.
+        current = cv.get()
+        if current is not self._fp_from:
+            self._fp_from, self._fp_ignore = current, _make_extobj(all="ignore")
+        token = cv.set(self._fp_ignore)
+        try:
             return self._step(advance, save, restore, f_app, gravity, step_count)
+        finally:
+            cv.reset(token)
 
     def _step(self, advance, save, restore, f_app, gravity, step_count):
         dt = self.model.dt
         self._gravity = gravity
         self._work = 0.0
-        before = self._current(gravity, step_count)
+        c = self._cached
+        # _current's common case: the state the last step ended in, measured by it.
+        before = c[1] if c is not None and c[0] == step_count and self._ledger is not None else \
+            self._current(gravity, step_count)
         snap = save()
         ladder = self._ladder()
+        first = None
+        if ladder[0] == OWN_RUNG:
+            # The model's own step, run every step: judged without a Verdict, and when it
+            # passes leaving nothing inverted, reported by _stable without _walk.
+            stats, after, signs = self._own_step(advance, before, f_app, gravity)
+            if signs is not None and not signs[0] and not signs[1] and not after.inverted:
+                # max(-inf, growth): the Verdict's growth, as _own_verdict makes it (NaN -> -inf).
+                return stats, self._stable(stats, max(-np.inf, signs[2]), after, step_count)
+            first = (stats, _own_verdict(signs, after), after)
         attempt, best, stats, verdict, after, first_reason = self._walk(ladder, advance, save, restore, snap,
-                                                                        before, f_app, gravity, dt)
+                                                                        before, f_app, gravity, dt, first)
         if attempt == 0 and not after.inverted and not self._projected[0]:
             # The common case, the model's own step passed and left no inverted element:
             # its report without the branches below (they run after every step).
-            return stats, self._stable(stats, verdict, after, step_count)
+            return stats, self._stable(stats, verdict.growth, after, step_count)
         start_untangled = None
         if attempt is None and best is None and before.inverted:
             # No rung passes from a tangled start (inverted elements the last steps kept):
@@ -322,35 +371,48 @@ class StabilityGuard:
         report.update(self.totals, guard_last_event=self.last_event)
         return stats, report
 
-    def _stable(self, stats, verdict, after, step_count):
+    def _stable(self, stats, growth, after, step_count):
         """The report and bookkeeping of _step for a step whose first rung passed with no
-        energy projection and left no inverted element (the same keys, values and totals as
-        _step's general path gives it: "stable", one attempt, one sub-step)."""
+        energy projection and left no inverted element (the same keys in the same order,
+        values and totals as _step's general path gives it: "stable", one attempt, one
+        sub-step). growth: the step's (E1 - E0 - W) / scale."""
         totals = self.totals
         totals["guard_substeps_total"] += 1
         if isinstance(stats, dict) and stats.get("indefinite_system"):
             totals["guard_indefinite_steps"] += 1       # see _step
         self._inverted_run = 0                          # _untangle with nothing inverted
         self._cached = (step_count + 1, after)
-        if self._ledger is not None:                    # after is finite: the rung passed
-            E0, W, run_scale = self._ledger
-            W += self._work
-            self._ledger = (E0, W, max(run_scale, self._run_scale(after, W)))
-        report = {"guard_attempts": 1, "guard_reason": "", "guard_substeps": 1, "guard_action": "",
-                  "stability": "stable", "guard_projected": 0.0, "energy_growth": float(verdict.growth),
-                  "guard_work": float(self._work)}
-        report.update(totals, guard_last_event=self.last_event)
+        work = self._work
+        ledger = self._ledger
+        if ledger is not None:                          # after is finite: the rung passed
+            E0, W, run_scale = ledger
+            W += work
+            # _run_scale(after, W), spelled out (_signs has set the floor)
+            floor = self._floor if self._floor is not None else self._scale_floor(self._gravity)
+            self._ledger = (E0, W, max(run_scale, after.kinetic + max(after.elastic, 0.0) + abs(W)
+                                       + abs(after.gravity - self._G0) + floor))
+        # A copy of the constant part, then the step's values into its placeholders (a
+        # dict display of eight keys and update(..., key=) cost more, every step).
+        report = _STABLE_REPORT.copy()
+        report["energy_growth"] = float(growth)
+        report["guard_work"] = float(work)
+        report.update(totals)
+        report["guard_last_event"] = self.last_event
         return report
 
-    def _walk(self, ladder, advance, save, restore, snap, before, f_app, gravity, dt):
-        """Try the ladder's rungs from the snapshot until one passes. Returns (attempt index
+    def _walk(self, ladder, advance, save, restore, snap, before, f_app, gravity, dt, first=None):
+        """Try the ladder's rungs from the snapshot until one passes. first: the first
+        rung's (stats, Verdict, after) when _step has run it already. Returns (attempt index
         or None, best soft-only attempt or None, stats, verdict, after, first reason)."""
         first_reason, best, stats, verdict, after = None, None, None, None, before
         for attempt, (n_sub, newton, implicit, project) in enumerate(ladder):
             if attempt:
                 restore(snap)
-            stats, verdict, after = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton, implicit,
-                                                  project)
+            if first is not None and not attempt:
+                stats, verdict, after = first
+            else:
+                stats, verdict, after = self._attempt(advance, before, f_app, gravity, dt, n_sub, newton,
+                                                      implicit, project)
             if verdict.ok:
                 if attempt and attempt + 1 < len(ladder) and verdict.growth > MARGIN * self.settings.energy_growth:
                     return self._with_margin(ladder, attempt, advance, save, restore, snap, before, f_app, gravity,
@@ -475,7 +537,8 @@ class StabilityGuard:
         model = self.model
         # The first rung is the model's own step: no options to apply.
         if n_sub == 1 and not newton and not implicit and not project:
-            return self._own_step(advance, before, f_app, gravity)
+            stats, after, signs = self._own_step(advance, before, f_app, gravity)
+            return stats, _own_verdict(signs, after), after
         options = (None if n_sub == 1 and not newton and not implicit else
                    StepOptions(dt=dt / n_sub, newton_iterations=newton, fictitious="implicit" if implicit else None))
         stats, verdict, prev = {}, Verdict(growth=-np.inf), before
@@ -517,8 +580,10 @@ class StabilityGuard:
 
     def _own_step(self, advance, before, f_app, gravity):
         """_attempt for the model's own step (one sub-step, no StepOptions, no projection: the
-        first rung, run every step): what _attempt's loop does for it, with one Verdict
-        built instead of three and the checks read from _signs."""
+        first rung, run every step): what _attempt's loop does for it, judged by _signs.
+        Returns (model stats, Measure after, signs): signs (hard, soft, growth) as _signs
+        gives them, or None when the step raised a numerical error (after is then before);
+        _own_verdict makes the Verdict _attempt would have made of them."""
         self._work = 0.0
         self._projected = (0, 0.0)
         try:
@@ -527,20 +592,33 @@ class StabilityGuard:
             raise
         except NUMERICAL_ERRORS as err:
             self.last_error = f"{type(err).__name__}: {err}"
-            return {"error": self.last_error}, Verdict(hard=["non-finite"]), before
+            return {"error": self.last_error}, before, None
         model = self.model
         after = model.guard_measure(gravity, self.settings.inversion)
         if isinstance(stats, dict):
-            work = _work(f_app, before, after, model.contact, stats.get("external_work"), stats.get("contact_work"))
+            mw, cw = stats.get("external_work"), stats.get("contact_work")
+            if mw is not None and (cw is not None or not model.contact):
+                work = float(mw) + (float(cw) if cw is not None else 0.0)     # _work's first case
+            else:
+                work = _work(f_app, before, after, model.contact, mw, cw)
         else:
             work = _work(f_app, before, after, model.contact)
-        hard, soft, growth = self._signs(before, after, work, stats, gravity)
-        if hard:
-            return stats, Verdict(hard=list(hard), soft=list(soft), growth=growth, inverted=after.inverted), after
-        self._work += work
-        # As _attempt's merge into its Verdict(growth=-inf) (max(-inf, growth): the same float).
-        return stats, Verdict(soft=sorted(set(soft)) if soft else [], growth=max(-np.inf, growth),
-                              inverted=after.inverted), after
+        signs = self._signs(before, after, work, stats, gravity)
+        if not signs[0]:
+            self._work += work
+        return stats, after, signs
+
+
+def _own_verdict(signs, after):
+    """The Verdict of StabilityGuard._own_step's result, as _attempt's loop makes it: a
+    numerical error (signs None) is "non-finite"; hard signs are kept as judged; otherwise
+    the soft signs merge into a Verdict(growth=-inf) (max(-inf, growth): the same float)."""
+    if signs is None:
+        return Verdict(hard=["non-finite"])
+    hard, soft, growth = signs
+    if hard:
+        return Verdict(hard=list(hard), soft=list(soft), growth=growth, inverted=after.inverted)
+    return Verdict(soft=sorted(set(soft)) if soft else [], growth=max(-np.inf, growth), inverted=after.inverted)
 
 
 def mean_motion(model):

@@ -456,7 +456,7 @@ def test_a_retry_passing_near_the_energy_bound_tries_the_next_rung(monkeypatch, 
     """Margin (guard.MARGIN): the verdicts are scripted per attempt (None: rejected for
     energy; a number: passes with that growth) over the real steps of a reduced beam."""
     from mdss_ros import guard as G
-    real = G.StabilityGuard._attempt
+    real, real_own = G.StabilityGuard._attempt, G.StabilityGuard._own_step
     calls = []
 
     def scripted(self, advance, before, f_app, gravity, dt, n_sub, newton, implicit=False, project=False):
@@ -466,11 +466,47 @@ def test_a_retry_passing_near_the_energy_bound_tries_the_next_rung(monkeypatch, 
         return stats, G.Verdict(hard=[] if growth is not None else ["energy"],
                                 growth=1.0 if growth is None else growth, inverted=v.inverted), after
 
+    def scripted_own(self, advance, before, f_app, gravity):
+        # The first rung (the model's own step) is run by _step itself, as signs.
+        stats, after, _ = real_own(self, advance, before, f_app, gravity)
+        growth = plan[len(calls)]
+        calls.append(1)
+        return stats, after, (((), (), growth) if growth is not None else (("energy",), (), 1.0))
+
     sim = _sim("reduced")
     assert sim.guard.settings.energy_growth == 0.1
     monkeypatch.setattr(G.StabilityGuard, "_attempt", scripted)
+    monkeypatch.setattr(G.StabilityGuard, "_own_step", scripted_own)
     sim.step()
     st = sim.stats()
     assert len(calls) == tried
     assert st["stability"] == "recovered" and st["guard_attempts"] == kept
     assert st["energy_growth"] == plan[kept - 1]
+
+
+def test_a_guarded_step_ignores_floating_point_errors_and_restores_the_context():
+    """StabilityGuard.step sets numpy's floating-point context itself, as np.errstate(all=
+    "ignore") would: every error ignored inside the step, the rest (buffer size) taken from
+    the caller's context, and the caller's context back afterwards."""
+    sim = _sim("reduced")
+    real, seen = sim._advance, []
+
+    def advance(*args, **kwargs):
+        seen.append((np.geterr(), np.getbufsize()))
+        return real(*args, **kwargs)
+
+    sim._advance = advance
+    ignore = {"divide": "ignore", "over": "ignore", "under": "ignore", "invalid": "ignore"}
+    with np.errstate(all="raise"):
+        size = np.getbufsize()
+        try:
+            np.setbufsize(16384)
+            sim.step(2)
+            inside_after = (np.geterr(), np.getbufsize())
+            np.setbufsize(size)
+            sim.step()
+        finally:
+            np.setbufsize(size)
+        assert np.geterr()["invalid"] == "raise"
+    assert seen[:2] == [(ignore, 16384)] * 2 and seen[2] == (ignore, size)
+    assert inside_after == ({k: "raise" for k in ignore}, 16384)

@@ -159,6 +159,12 @@ def test_steps_run_with_the_scene_blas_threads_and_restore_them():
     assert blas_threads() == before
     with BlasThreads(None)():
         assert blas_threads() == before
+    limit = BlasThreads(1)
+    with limit():
+        with limit():          # nested (a surface read inside a step): nothing to change
+            assert all(n == 1 for n in blas_threads())
+        assert all(n == 1 for n in blas_threads())
+    assert blas_threads() == before
     with pytest.raises(SceneError, match="blas_threads"):
         load_scene("cantilever", {"model.blas_threads": 0})
     assert load_scene("cantilever", {"model.blas_threads": None})["model"]["blas_threads"] is None

@@ -14,12 +14,16 @@ import math
 import numpy as np
 
 from ..state_measure import Measure, inverted_tets
-from .measure import frame_measure
+from .measure import frame_measure, measure_pack
 
 
 class GuardTerms:
     """The stability guard's measure, energy projection and untangle on a reduced state. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
+
+    #: (layout, measure.measure_pack(layout)), built on the first measure (the constants
+    #: frame_measure reads; keyed on the layout object, which a model builds once).
+    _guard_pack = None
 
     def kinetic_energy(self):
         v = self.vertex_velocities()
@@ -39,13 +43,15 @@ class GuardTerms:
         nowhere."""
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
-        L = self.layout
-        out = np.empty(4)
-        frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, L.movable, L.total_mass, L.inertia0, L.B1,
-                      L.B2, L.W, L.rho, L.sigma, L.mass_r, L.mass_moment, g, out)
+        pack = self._guard_pack
+        if pack is None or pack[0] is not self.layout:
+            pack = self._guard_pack = (self.layout, measure_pack(self.layout))
+        # The layout's constants in one array and the result as a tuple of Python floats:
+        # the call with 18 arguments, an out array and tolist() was the measure's largest
+        # piece beside the elastic evaluation.
+        ok, kinetic, grav, speed = frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, pack[1], g)
         # x_full / v_full hold every vertex but only full-space rows are state: checking
         # them on a model without full-space domains was a third of this measure.
-        ok, kinetic, grav, speed = out.tolist()          # Python floats, in one call
         finite = bool(ok) and (not self.F or (np.isfinite(self.x_full).all()
                                               and np.isfinite(self.v_full).all()))
         if not finite:
@@ -63,7 +69,7 @@ class GuardTerms:
         # Spelled out, not all() over a generator: this runs after every step.
         finite = (math.isfinite(kinetic) and math.isfinite(elastic) and math.isfinite(grav)
                   and math.isfinite(speed))
-        return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed=speed)
+        return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed)
 
     def mean_motion(self):
         """(total mass M, mass-centre velocity V (3,)) for the guard's energy projection;
