@@ -31,7 +31,10 @@ MAGIC = "mdss_ros precompute v1"
 # "file.py::Class.method" names one function of a file that also does other things (the
 # reduced model builds its stages in a few methods; its step code is not part of them).
 STAGE_CODE = {
-    "bases": ["reduced/partition.py", "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py",
+    "bases": ["reduced/partition.py", "reduced/auto_domains.py", "reduced/bend_cuts.py",
+              "model_build.py::training_load_cases", "model_build.py::bends_from_loads",
+              "reduced/residual_compliance.py::RestStatics", "reduced/residual_compliance.py::six_supports",
+              "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py",
               "fem/material_kernels.py", "fem/elements.py", "fem/assembly.py", "precompute.py",
               "reduced/reduced_model.py::ReducedModel.__init__"],
     "cubature": ["reduced/training.py", "reduced/cubature.py", "reduced/sampled_forces.py",
@@ -180,13 +183,17 @@ class PrecomputeCache:
         return p
 
 
-def bases_cache_key(body, model_cfg):
-    """Key of the bases stage: mesh, material, pins, partition settings, modes, basis options."""
+def bases_cache_key(body, model_cfg, training_loads=None):
+    """Key of the bases stage: mesh, material, pins, partition settings, modes, basis
+    options, and the scene's training load cases when they place cuts
+    (model_build.training_load_cases; None otherwise, which keys as before)."""
     mat = body.material
     cfg = model_cfg
-    return cache_key("bases", code_hash("bases"), body.vertices, body.tets, mat.kind_id, mat.params, mat.density,
-                     body.pinned, cfg.get("domains"), cfg.get("full_space_domains"), cfg["modes"],
-                     cfg.get("basis") or {})
+    parts = [body.vertices, body.tets, mat.kind_id, mat.params, mat.density, body.pinned, cfg.get("domains"),
+             cfg.get("full_space_domains"), cfg["modes"], cfg.get("basis") or {}]
+    if training_loads is not None:
+        parts.append([case.key() for case in training_loads])
+    return cache_key("bases", code_hash("bases"), *parts)
 
 
 def cubature_cache_key(bases_key, cubature_cfg, dt, alpha, beta, model_cfg):

@@ -31,9 +31,13 @@ import numpy as np
 from scipy.sparse import csgraph
 
 from mdss_ros.errors import SceneError
+from mdss_ros.fem.elements import tet_geometry
+from mdss_ros.reduced.bend_cuts import element_rotations, limb_cuts
 
-AUTO_KEYS = {"core_scale", "min_limb", "limb_segments"}
-DEFAULTS = {"core_scale": 1.5, "min_limb": 1.0, "limb_segments": 1}
+AUTO_KEYS = {"core_scale", "min_limb", "limb_segments", "max_bend"}
+#: max_bend (degrees): the largest bend a limb's domain is left to carry in the scene's
+#: training poses (bend_cuts.py); 0 turns the cuts from the scene's loads off.
+DEFAULTS = {"core_scale": 1.5, "min_limb": 1.0, "limb_segments": 1, "max_bend": 90.0}
 
 
 def auto_settings(spec):
@@ -49,6 +53,10 @@ def auto_settings(spec):
     for k in ("core_scale", "min_limb"):
         if isinstance(out[k], bool) or not isinstance(out[k], (int, float)) or not out[k] > 0:
             raise SceneError(f"model.domains.auto.{k}: expected a positive number, got {out[k]!r}")
+    b = out["max_bend"]
+    if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b <= 360:
+        raise SceneError(f"model.domains.auto.max_bend: expected degrees in [0, 360] (0: no cuts from the "
+                         f"scene's loads), got {b!r}")
     n = out["limb_segments"]
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise SceneError(f"model.domains.auto.limb_segments: expected an integer >= 1, got {n!r}")
@@ -105,13 +113,17 @@ def _core_radius(graph, d, T, core_scale, min_limb):
     return best
 
 
-def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segments=1):
+def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segments=1, max_bend=90.0,
+                 poses=None):
     """Core and limb domains of a body.
 
     vertices (n, 3); tets (m, 4); graph: the (n, n) edge-length graph (partition.vertex_graph
-    with weights=vertices). Returns (labels (n,) int64, names [str], notes [str]): label 0
-    is "core", then "limb0", "limb1", ... (or "limb0_0", "limb0_1", ... with segments),
-    limbs ordered by decreasing reach; notes say where each cut is and why.
+    with weights=vertices); poses: None, or a callable giving the scene's training poses
+    (case labels [str], displacements (c, n, 3)), called only when there are limbs and
+    max_bend > 0: each limb is then cut where they bend it more than max_bend degrees
+    (bend_cuts.py). Returns (labels (n,) int64, names [str], notes [str]): label 0 is
+    "core", then "limb0", "limb1", ... (or "limb0_0", "limb0_1", ... with segments or bend
+    cuts), limbs ordered by decreasing reach; notes say where each cut is and why.
     """
     n = len(vertices)
     surf = surface_vertices(tets)
@@ -126,7 +138,21 @@ def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segme
     labels = np.zeros(n, dtype=np.int64)
     names, notes = ["core"], []
     short = len(outside) - sum(len(v) for v, _ in limbs)
+    bends = _bend_rotations(vertices, tets, poses) if (limbs and poses is not None and max_bend > 0
+                                                        and limb_segments == 1) else None
+    if bends is not None:
+        root_of = _root_zones(graph, d, core_scale * T, limbs)
     for j, (verts, length) in enumerate(limbs):
+        if bends is not None:
+            rot, volume, case_labels = bends
+            pieces, why = _bend_pieces(graph, d, rot, volume, tets, verts, np.flatnonzero(root_of == j), T,
+                                       max_bend)
+            for k, ids in enumerate(pieces):
+                labels[ids] = len(names)
+                names.append(f"limb{j}" if len(pieces) == 1 else f"limb{j}_{k}")
+            notes.append(f"limb{j}: {len(verts)} vertices reaching {length:.4g} m beyond the core; the training "
+                         f"poses ({'; '.join(case_labels)}) {why}")
+            continue
         if limb_segments == 1:
             labels[verts] = len(names)
             names.append(f"limb{j}")
@@ -144,3 +170,89 @@ def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segme
                  + (f"; {short} vertices beyond it in no limb (pieces reaching less than {min_limb:g} x {T:.4g} m, "
                     f"or wrapping the core) joined it" if short else ""))
     return labels, names, notes
+
+
+#: The share of max_bend a limb may bend inside the core's domain: the core's frame and
+#: modes carry every limb's root, so a limb that bends near the core is cut close to it.
+CORE_SHARE = 0.25
+
+
+def _root_zones(graph, d, R_inner, limbs):
+    """(n,) the limb whose root zone each vertex is in, else -1: the core's vertices
+    farther than R_inner (core_scale x its half-thickness) from its centre, each given to
+    the nearest limb. A core grown wider than that to separate the limbs (a pedestal hub)
+    holds the limbs' roots, where a load on a limb bends it most."""
+    n = len(d)
+    owner = np.full(n, -1, dtype=np.int64)
+    for j, (verts, _) in enumerate(limbs):
+        owner[verts] = j
+    limb_ids = np.flatnonzero(owner >= 0)
+    _, _, source = csgraph.dijkstra(graph, directed=False, indices=limb_ids, min_only=True,
+                                    return_predecessors=True)
+    out = np.full(n, -1, dtype=np.int64)
+    zone = (owner < 0) & (d > R_inner) & (source >= 0)
+    out[zone] = owner[source[zone]]
+    return out
+
+
+def _bend_pieces(graph, d, rot, volume, tets, verts, root, T, max_bend):
+    """The pieces [(ids)] of one limb cut where the training poses bend it (bend_cuts.py),
+    and what was done, in words. verts: the limb's vertices; root: its root zone in the core
+    (_root_zones). Along the limb s is the distance from the root zone's deepest vertex,
+    measured from the limb's tip: 0 at the root. Root-zone vertices before the first cut
+    stay in the core (CORE_SHARE of max_bend); no cut leaves the limb whole, as without
+    poses."""
+    ext = np.concatenate([root, verts])
+    tip = int(np.argmax(d[ext]))
+    t = csgraph.dijkstra(graph[ext][:, ext], directed=False, indices=tip)
+    # Root-zone vertices the limb does not reach within the zone stay in the core.
+    reached = np.isfinite(t)
+    root, ext, t = root[reached[:len(root)]], ext[reached], t[reached]
+    s = np.zeros(len(d))
+    s[ext] = t.max() - t
+    cuts, spans, whole = limb_cuts(rot, volume, tets, s, ext, 0.25 * T, T, np.radians(max_bend),
+                                   np.radians(CORE_SHARE * max_bend))
+    start = float(s[verts].min())
+    if len(cuts) and cuts[0] >= start:
+        # The core's share reaches past the root zone: the limb still starts where it
+        # leaves the core (its own frame swings it), and the core keeps its root zone.
+        cuts, spans = cuts[1:], np.concatenate([[max(spans[0], spans[1])], spans[2:]])
+    if not len(cuts):
+        return [verts], f"bend it {np.degrees(whole):.3g} deg (max_bend {max_bend:g} deg: one domain)"
+    band = np.searchsorted(cuts, s[ext], side="right")
+    band[len(root):] = np.maximum(band[len(root):], 1)           # the limb proper leaves the core
+    keep = band > 0
+    pieces = _connected_pieces(graph, ext[keep], band[keep])
+    return pieces, (f"bend it {np.degrees(whole):.3g} deg, more than {CORE_SHARE:g} x max_bend {max_bend:g} deg "
+                    f"from the core: cut at {', '.join(f'{c - start:+.3g}' for c in cuts)} m from where it "
+                    f"leaves the core ({len(root)} root vertices in the core's domain before), into {len(pieces)} "
+                    f"piece(s) bending {', '.join(f'{np.degrees(a):.3g}' for a in spans[1:])} deg "
+                    f"({np.degrees(spans[0]):.3g} deg left to the core)")
+
+
+def _bend_rotations(vertices, tets, poses):
+    """(rot (c, m, 3, 3) each tet's rotation, volume (m,), case labels) of the training poses, or None when the
+    scene has no load case."""
+    case_labels, u = poses()
+    if not len(case_labels):
+        return None
+    geom = tet_geometry(vertices, tets)
+    rot = np.stack([element_rotations(tets, geom.grads, u_c) for u_c in u])
+    return rot, geom.volume, case_labels
+
+
+def _connected_pieces(graph, verts, band, keep=0.2):
+    """The pieces [(ids)] of a limb's bands, in band order: a band of geodesic distance
+    across a forked limb falls apart into connected pieces, and each of them at least keep
+    times its band's largest becomes a piece of its own. Smaller fragments (corners a
+    band's edge clips) stay with their band's largest piece, and partition.repair_hinges
+    moves them to the neighbour they touch."""
+    out = []
+    for b in np.unique(band):                 # a few bands per limb
+        ids = verts[band == b]
+        count, piece = csgraph.connected_components(graph[ids][:, ids], directed=False)
+        size = np.bincount(piece, minlength=count)
+        big = np.flatnonzero(size >= keep * size.max())
+        main = int(np.argmax(size))
+        out.extend(ids[(piece == p) | ((p == main) & ~np.isin(piece, big))] for p in big)
+    return out

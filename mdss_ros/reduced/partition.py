@@ -770,13 +770,14 @@ __all__ = [
 ]
 
 
-def domain_labels(domains_cfg, vertices, tets, notes=None):
+def domain_labels(domains_cfg, vertices, tets, notes=None, poses=None):
     """Vertex labels and domain names of a scene's `model.domains`: {count: N[, seed]},
     {regions: {name: selector}} or {auto: true | {settings}} (reduced/auto_domains.py),
     optionally with `reach` {name: selector} regions that get domains of their own, carved
     out last (scene.model_config puts colliders' reach regions there). Domains left empty
     by the carving are dropped. notes: a list that hears why the domains are where they
-    are (auto placement).
+    are (auto placement). poses: the scene's training poses for auto placement, a callable
+    giving (case labels, displacements (c, n, 3)) (bend_cuts.py), or None.
 
     Returns (labels (n_verts,) int64, names [str])."""
     dcfg = domains_cfg or {"count": 1}
@@ -787,7 +788,12 @@ def domain_labels(domains_cfg, vertices, tets, notes=None):
     if "auto" in dcfg:
         from mdss_ros.reduced.auto_domains import auto_domains, auto_settings
         graph = vertex_graph(tets, len(vertices), weights=vertices)
-        labels, names, why = auto_domains(vertices, tets, graph, **auto_settings(dcfg["auto"]))
+        labels, names, why = auto_domains(vertices, tets, graph, poses=poses, **auto_settings(dcfg["auto"]))
+        # Bend cuts across a limb can clip small corners off a band (auto_domains._connected_pieces).
+        labels, kept, moved = repair_hinges(tets, labels)
+        names = [names[i] for i in kept]
+        if moved:
+            why.append(f"{moved} vertices of pieces that a cut clipped moved to the neighbouring domain")
         if notes is not None:
             notes.extend(why)
     elif "regions" in dcfg:

@@ -67,7 +67,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
     can_untangle = True
 
     def __init__(self, body, cfg, dt, damping, solver="auto", progress=None, cache=None, contact_vertices=None,
-                 contact_mode_vertices=None):
+                 contact_mode_vertices=None, training_loads=None):
         from .partition import build_partition, domain_elimination_order, domain_labels
         t_start = time.perf_counter()
         say = progress or (lambda msg: None)
@@ -90,7 +90,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
 
         # Partition and bases, from the cache when their inputs are unchanged ----------
         self.cache = cache if cache is not None else PrecomputeCache()
-        self.bases_key = bases_cache_key(body, cfg)
+        self.bases_key = bases_cache_key(body, cfg, training_loads)
         hit = self.cache.load("bases", self.bases_key)
         if hit is not None:
             labels, names = hit[0]["labels"], list(hit[1]["names"])
@@ -98,7 +98,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
             say(f"cache: bases loaded from {self.cache.path('bases', self.bases_key)}")
         else:
             self.partition_notes = []         # why the domains are where they are (auto placement)
-            labels, names = domain_labels(cfg.get("domains"), body.vertices, body.tets, self.partition_notes)
+            labels, names = domain_labels(cfg.get("domains"), body.vertices, body.tets, self.partition_notes,
+                                          poses=_training_poses(body, self.vertex_mass, training_loads, say))
             for note in self.partition_notes:
                 say(f"domains: {note}")
         self.partition = build_partition(tets, labels, names=names)
@@ -736,3 +737,15 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
             removed += int(hit.sum())
         self._full_alive = self._alive_weights()
         return removed
+
+
+def _training_poses(body, vertex_mass, cases, say):
+    """The callable auto placement asks for the scene's training poses (bend_cuts.py):
+    (case labels, displacements (c, n, 3)); None without load cases."""
+    if not cases:
+        return None
+
+    def poses():
+        from .bend_cuts import static_poses
+        return [c.label for c in cases], static_poses(body, vertex_mass, cases, progress=say)
+    return poses

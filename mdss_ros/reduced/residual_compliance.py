@@ -227,12 +227,75 @@ def kinematics_at_rest(layout, n_gen, n_verts):
     return sp.csr_matrix((v_all, (r_all, c_all)), shape=(3 * n_verts, n_gen))
 
 
-def _six_supports(R):
+def six_supports(R):
     """Six DOFs (6,) whose rigid-mode rows are best conditioned: holding them removes the
     rigid motions and, for a load with no rigid part, adds no reaction (inertia relief).
     Pivoted QR of R^T (6, n_dofs) picks them."""
     _, _, piv = sla.qr(R.T, mode="economic", pivoting=True)
     return np.sort(piv[:6])
+
+
+@dataclass(frozen=True)
+class RestStatics:
+    """The full-space FEM at rest with the scene's pins removed, for linear static answers.
+    K (n_free, n_free) CSR; free_dof (3 n,) -> free index or -1; free (n_free,) the free
+    global DOFs; m_dof (n_free,) their lumped masses; R (3 n, 6) the M-orthonormal rigid
+    modes of a floating body, None when pinned; Rf = R[free]."""
+
+    K: object
+    free_dof: np.ndarray
+    free: np.ndarray
+    m_dof: np.ndarray
+    R: object
+
+    @classmethod
+    def of(cls, body, vertex_mass):
+        X = body.vertices
+        fem = FEMForceModel(X, body.tets, body.material, pinned=body.pinned)
+        K = fem.pattern.matrix(fem.tangent(X)[2]).tocsr()
+        free_dof = fem.pattern.free_dof
+        free = np.flatnonzero(free_dof >= 0)
+        R = rigid_modes(X, vertex_mass) if len(body.pinned) == 0 else None
+        return cls(K, free_dof, free, np.repeat(vertex_mass, 3)[free], R)
+
+    @property
+    def floating(self):
+        return self.R is not None
+
+    @property
+    def Rf(self):
+        return None if self.R is None else self.R[self.free]
+
+    def answers(self, loads, rows=None, progress=None):
+        """u = K^+ P B on the free DOFs rows (default all) for loads B (n_free, k), dense or
+        scipy.sparse, M-orthogonal to the rigid modes of a floating body (P = I - M R R^T:
+        inertia relief; the body is held at six DOFs that carry no reaction for a load with
+        no rigid part). One factorisation, BATCH right-hand sides at a time: only the rows
+        asked for are kept, so k may be thousands. Returns (u (len(rows), k), info)."""
+        say = progress or (lambda msg: None)
+        n_free, k = loads.shape
+        rows = np.arange(n_free) if rows is None else np.asarray(rows, dtype=np.int64)
+        Rf = self.Rf
+        held = six_supports(Rf) if self.floating else np.zeros(0, dtype=np.int64)
+        keep = np.setdiff1d(np.arange(n_free), held)
+        Kk = self.K[keep][:, keep].tocsr()
+        Kk.sort_indices()
+        solver = SparseSolver().factor(Kk)
+        say(f"static responses: {k} full-space solves of {len(keep)} DOFs")
+        out = np.zeros((len(rows), k))
+        MR = self.m_dof[:, None] * Rf if self.floating else None
+        for s in range(0, k, BATCH):
+            B = loads[:, s:s + BATCH]
+            B = B.toarray() if sp.issparse(B) else np.array(B, dtype=np.float64)
+            if self.floating:
+                B -= MR @ (Rf.T @ B)                                                     # P B
+            U = np.zeros_like(B)
+            U[keep] = np.asarray(solver.solve(B[keep])).reshape(len(keep), -1)
+            if self.floating:
+                U -= Rf @ (MR.T @ U)
+            out[:, s:s + BATCH] = U[rows]
+        solver.close()
+        return out, {"full_dofs": int(len(keep)), "floating": bool(self.floating)}
 
 
 def static_responses(body, vertex_mass, candidates, dofs=None, progress=None):
@@ -242,47 +305,19 @@ def static_responses(body, vertex_mass, candidates, dofs=None, progress=None):
     dofs (len(dofs), 3 n_c), default every DOF (3 n_verts, 3 n_c); pinned DOFs are zero,
     the full stiffness K (n_free, n_free) CSR, the pattern's free_dof (3 n_verts,) -> free
     index or -1, R (3 n_verts, 6) or None when pinned, info)."""
-    say = progress or (lambda msg: None)
-    X, n = body.vertices, len(body.vertices)
+    n = len(body.vertices)
     candidates = np.asarray(candidates, dtype=np.int64)
-    fem = FEMForceModel(X, body.tets, body.material, pinned=body.pinned)
-    K = fem.pattern.matrix(fem.tangent(X)[2])                     # (n_free, n_free), pins removed
-    free_dof = fem.pattern.free_dof                               # (3 n,) -> free index or -1
-    free = np.flatnonzero(free_dof >= 0)
-    m_dof = np.repeat(vertex_mass, 3)[free]
-    cand_dof = free_dof[(3 * candidates[:, None] + np.arange(3)).ravel()]               # (3 n_c,)
+    st = RestStatics.of(body, vertex_mass)
+    cand_dof = st.free_dof[(3 * candidates[:, None] + np.arange(3)).ravel()]            # (3 n_c,)
     if np.any(cand_dof < 0):
         raise ValueError("static_responses: candidates must be free vertices")
     dofs = np.arange(3 * n) if dofs is None else np.asarray(dofs, dtype=np.int64)
-    out_free = free_dof[dofs]                                                            # -1: pinned row
-    floating = len(body.pinned) == 0
-    R = rigid_modes(X, vertex_mass) if floating else None                              # (3 n, 6)
-    Rf = R[free] if floating else None
-
-    # K u = P E_c, u M-orthogonal to the rigid modes. A floating body is held at six DOFs
-    # that carry no reaction for a self-equilibrated load.
-    held = _six_supports(Rf) if floating else np.zeros(0, dtype=np.int64)
-    keep = np.setdiff1d(np.arange(len(free)), held)
-    Kk = K[keep][:, keep].tocsr()
-    Kk.sort_indices()
-    solver = SparseSolver().factor(Kk)
-    nc3 = len(cand_dof)
-    u = np.zeros((len(dofs), nc3))
-    say(f"static responses: {len(candidates)} vertices, {nc3} full-space solves of {len(keep)} DOFs")
-    MR = m_dof[:, None] * Rf if floating else None
-    for s in range(0, nc3, BATCH):
-        cols = np.arange(s, min(s + BATCH, nc3))
-        B = np.zeros((len(free), len(cols)))
-        B[cand_dof[cols], np.arange(len(cols))] = 1.0
-        if floating:
-            B -= MR @ Rf[cand_dof[cols]].T                                               # P E
-        U = np.zeros_like(B)
-        U[keep] = np.asarray(solver.solve(B[keep])).reshape(len(keep), -1)
-        if floating:
-            U -= Rf @ (MR.T @ U)
-        u[out_free >= 0, s:s + len(cols)] = U[out_free[out_free >= 0]]
-    solver.close()
-    return u, K, free_dof, R, {"full_dofs": int(len(keep)), "floating": bool(floating)}
+    out_free = st.free_dof[dofs]                                                         # -1: pinned row
+    u = np.zeros((len(dofs), len(cand_dof)))
+    E = sp.csc_matrix((np.ones(len(cand_dof)), (cand_dof, np.arange(len(cand_dof)))),
+                      shape=(len(st.free), len(cand_dof)))
+    u[out_free >= 0], info = st.answers(E, rows=out_free[out_free >= 0], progress=progress)
+    return u, st.K, st.free_dof, st.R, info
 
 
 def build_residual_compliance(body, layout, n_gen, vertex_mass, candidates, progress=None):

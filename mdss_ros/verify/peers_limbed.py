@@ -629,6 +629,10 @@ def limbed_peer_comparison(scene_src, base_overrides, out, quick=False, log=prin
     for label, ov in (ours if ours is not None else OURS_QUICK if quick else OURS):
         label = "mdss reduced: " + label
         t0 = time.perf_counter()
+        if ov.get("timeline") == LEVEL_TIMELINE:
+            # The level's loads as the scene's timeline: automatic domains cut where they bend.
+            ov = dict(ov, timeline=[{"t": 0.0, "topic": "wrench", "frame_id": h, "force": f.tolist(),
+                                     "torque": t.tolist()} for h, f, t in wrenches])
         try:
             sc = load_scene(scene_src, dict(base, **{"model.kind": "reduced"}, **ov))
             cache_dir = Path(out) / "cache" / ("peers_limbed_" + "".join(c if c.isalnum() else "_" for c in label)[:72])
@@ -784,7 +788,15 @@ def one_domain(r):
 # (docs/verification.md, "Interface modes"): 10 static answers to loads on the coupling
 # elements' vertices added to every domain.
 INTERFACE_ROW = ("per-limb domains, +10 interface modes", {"model.basis.interface_modes": 10})
-OURS_LEVELS = OURS + [INTERFACE_ROW, ("1 domain, r = 40", one_domain(40)), ("1 domain, r = 60", one_domain(60))]
+# Automatic domains (reduced/auto_domains.py) with the level's loads as the scene's timeline,
+# so that its cuts fall where those loads bend the limbs (reduced/bend_cuts.py). The core
+# takes the hub's 30 modes.
+LEVEL_TIMELINE = "the level's loads"
+AUTO_ROW = ("automatic domains, cut where the loads bend", {"model.domains": {"auto": True},
+                                                             "model.basis": {"modes": {"core": 30}},
+                                                             "timeline": LEVEL_TIMELINE})
+OURS_LEVELS = OURS + [INTERFACE_ROW, AUTO_ROW, ("1 domain, r = 40", one_domain(40)),
+                      ("1 domain, r = 60", one_domain(60))]
 # Quick (CI): exact cubature, so that the cold builds skip the cubature training (~30 s of a
 # 53 s quick run otherwise); in the full run the per-limb exact row's RMS error is within
 # 0.03 points of the scene config's at every level.
