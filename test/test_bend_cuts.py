@@ -133,3 +133,30 @@ def test_the_loads_that_place_cuts_are_in_the_bases_key():
             keys[label, str(domains)] = bases_cache_key(body, model, training_load_cases(scene, body, model))
     assert len({keys[k, "auto"] for k in ("none", "a", "b")}) == 3
     assert len({keys[k, "{'count': 2}"] for k in ("none", "a", "b")}) == 1
+
+
+def _beam(force, max_bend=90):
+    return load_scene({"name": "beam", "body": {
+        "mesh": {"generator": "box", "size": [0.6, 0.1, 0.1], "cell": 0.04},
+        "material": {"model": "stvk", "young": 1e6, "poisson": 0.3, "density": 1000}},
+        "pins": [{"box": [[-0.001, -1, -1], [0.001, 1, 1]]}],
+        "handles": {"tip": {"box": [[0.599, -1, -1], [0.601, 1, 1]]}},
+        "model": {"kind": "reduced", "domains": {"auto": {"max_bend": max_bend}}}, "gravity": [0, 0, 0],
+        "timeline": [{"t": 0.1, "topic": "wrench", "frame_id": "tip", "force": [0, 0, force]}]})
+
+
+def test_a_body_without_limbs_is_cut_from_its_root_where_the_loads_bend_it():
+    # A dead tip load turns a clamped beam's tip towards its own direction, at most 90 deg:
+    # this one by 73 deg. Within max_bend the beam stays one domain.
+    assert _partition(_beam(-400.0))[2] == ["core"]
+    body, labels, names, notes = _partition(_beam(-400.0, max_bend=30))
+    assert names == ["core", "bend1", "bend2"], notes
+    # The clamped end is the root: the pieces follow each other along the beam, the core
+    # (clamped) first, as few as keep within max_bend.
+    X = body.vertices
+    ends = [X[labels == k, 0].max() for k in range(len(names))]
+    assert np.all(np.diff(ends) > 0) and np.all(X[body.pinned, 0] < ends[0])
+    note = next(n for n in notes if n.startswith("no limbs;"))
+    spans = [float(a) for a in note.split("bending ")[1].split(" deg")[0].split(", ")]
+    whole = float(note.split("bend it ")[1].split(" deg")[0])
+    assert len(spans) == int(np.ceil(whole / 30)) == 3 and max(spans) <= 30, note

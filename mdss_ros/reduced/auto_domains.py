@@ -163,6 +163,14 @@ def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segme
                 names.append(f"limb{j}_{s}")
         notes.append(f"limb{j}: {len(verts)} vertices reaching {length:.4g} m beyond the core"
                      + (f", cut into {limb_segments} bands of {length / limb_segments:.4g} m" if limb_segments > 1 else ""))
+    if not limbs and poses is not None and max_bend > 0:
+        bends = _bend_rotations(vertices, tets, poses)
+        if bends is not None:
+            pieces, why = _bend_body(graph, tets, bends, T, max_bend)
+            for k, ids in enumerate(pieces[1:]):
+                labels[ids] = len(names)
+                names.append(f"bend{k + 1}")
+            notes.append(f"no limbs; the training poses ({'; '.join(bends[2])}) {why}")
     notes.insert(0, f"core: the {int((labels == 0).sum())} vertices within {R:.4g} m ({R / T:.3g} x the core's "
                     f"half-thickness {T:.4g} m: the smallest radius from {core_scale:g} x that separates the "
                     f"most limbs) of the thickest point "
@@ -228,6 +236,29 @@ def _bend_pieces(graph, d, rot, volume, tets, verts, root, T, max_bend):
                     f"leaves the core ({len(root)} root vertices in the core's domain before), into {len(pieces)} "
                     f"piece(s) bending {', '.join(f'{np.degrees(a):.3g}' for a in spans[1:])} deg "
                     f"({np.degrees(spans[0]):.3g} deg left to the core)")
+
+
+def _bend_body(graph, tets, bends, T, max_bend, root_share=0.05):
+    """A body without limbs cut where the training poses bend it (a clamped beam under a
+    tip load): [(ids)] of its pieces, the first one staying the core, and what was done.
+    Along the body s is the geodesic distance from its root, the vertices of the tets that
+    turn least (within root_share of the range of the largest turn over the cases: the
+    pins of a clamped body, the calmest part of a free one)."""
+    rot, volume, _ = bends
+    turn = np.arccos(np.clip(0.5 * (np.trace(rot, axis1=2, axis2=3) - 1.0), -1.0, 1.0)).max(axis=0)   # (m,)
+    calm = turn <= turn.min() + root_share * (turn.max() - turn.min())
+    root = np.unique(tets[calm])
+    s = csgraph.dijkstra(graph, directed=False, indices=root, min_only=True)
+    everything = np.flatnonzero(np.isfinite(s))
+    # No core shared by limbs here: the body's pieces are balanced from the root.
+    cuts, spans, whole = limb_cuts(rot, volume, tets, s, everything, 0.25 * T, T, np.radians(max_bend), None)
+    if not len(cuts):
+        return [everything], f"bend it {np.degrees(whole):.3g} deg (max_bend {max_bend:g} deg: one domain)"
+    band = np.searchsorted(cuts, s[everything], side="right")
+    pieces = _connected_pieces(graph, everything, band)
+    return pieces, (f"bend it {np.degrees(whole):.3g} deg from its calmest part (its {len(root)} root vertices): "
+                    f"cut at {', '.join(f'{c:.3g}' for c in cuts)} m from there into {len(pieces)} domains bending "
+                    f"{', '.join(f'{np.degrees(a):.3g}' for a in spans)} deg")
 
 
 def _bend_rotations(vertices, tets, poses):

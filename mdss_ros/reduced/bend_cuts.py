@@ -175,7 +175,11 @@ def greedy_cuts(bend, first_bend, max_bend, min_bands):
     limb's root (in the core). The first piece, the core's share, grows while its span
     stays within first_bend; none is cut if the whole limb does. The rest is cut into as
     few pieces as keep within max_bend, with their spans balanced (the greedy limit is the
-    rest's span over that count), at least min_bands bands each."""
+    rest's span over that count), at least min_bands bands each. first_bend None: no share
+    for a core, the whole limb balanced so (a body without limbs)."""
+    if first_bend is None:
+        total = float(bend.max())
+        first_bend = total / max(1, int(np.ceil(total / max_bend))) * (1.0 + 1e-9)
     first = _grow(bend, 0, first_bend, min_bands)
     if first is None:
         return np.zeros(0, dtype=np.int64), np.array([float(bend.max())])
@@ -197,7 +201,8 @@ def limb_cuts(rot, volume, tets, s, members, width, min_length, max_bend, first_
     the largest bend in the limb rad). rot (c, m, 3, 3) per case and tet; volume (m,);
     tets (m, 4); s (n,) each vertex's distance along the limb (0 at its root in the core);
     members: the vertex ids of the limb with its root zone; width: the profile's band
-    width; min_length: the shortest piece; max_bend, first_bend: greedy_cuts' limits."""
+    width; min_length: the shortest piece; max_bend, first_bend: greedy_cuts' limits
+    (rad; first_bend None: balanced from the root)."""
     inside = np.zeros(len(s), dtype=bool)
     inside[members] = True
     in_limb = inside[tets].all(axis=1)
