@@ -206,3 +206,35 @@ def test_reduced_training_steps_through_the_step_function_and_leaves_the_model_a
         generate_training(m, n_poses=2, source="reduced")
     m.newton_iterations = own
     m.reset()
+
+
+def test_stacks_by_mode_count_give_each_domain_its_own_forces(small):
+    """StackedSamples groups domains by mode count (mode_buckets): a domain's energy, force
+    and stiffness are its SampledDomainForces' own, whatever it is stacked with, and the
+    padding stays zero. Domains here: the two of the fixture with 8 modes, the same ones cut
+    to 5 modes (a stack of their own) and one to 7 (stacked with the 8s)."""
+    from mdss_ros.reduced.sampled_forces import StackedSamples, mode_buckets
+    sim, training = small
+    doms, qs = [], []
+    for k, dom in enumerate(sim.model.subspace):
+        fm = dom.forces
+        for r in (dom.U3.shape[2], 5, 7):
+            els = np.arange(0, len(fm.tets), 3)
+            doms.append(SampledDomainForces.build(dom.U3[:, :, :r], fm.tets, fm.geom.grads, fm.geom.volume,
+                                                  fm.material, elements=els, weights=np.full(len(els), 2.5)))
+            qs.append(training.q[k][11][:r])
+    r = [sf.G.shape[2] for sf in doms]
+    assert [sorted(ids.tolist()) for ids, _ in mode_buckets(r)] == [[0, 2, 3, 5], [1, 4]]
+    stack = StackedSamples(doms, 8, doms[0].material)
+    q = np.zeros((len(doms), 8))
+    for k, qk in enumerate(qs):
+        q[k, :len(qk)] = qk
+    e, g, K = stack.evaluate(q)
+    for k, sf in enumerate(doms):
+        e1, g1, K1 = sf.evaluate(qs[k])
+        rk = r[k]
+        assert abs(e[k] - e1) <= 1e-12 * abs(e1)
+        np.testing.assert_allclose(g[k, :rk], g1, rtol=1e-12, atol=1e-12 * np.abs(g1).max())
+        np.testing.assert_allclose(K[k, :rk, :rk], K1, rtol=1e-12, atol=1e-12 * np.abs(K1).max())
+        assert not g[k, rk:].any() and not K[k, rk:].any() and not K[k, :, rk:].any()
+    assert stack.inverted_count(q) == 0

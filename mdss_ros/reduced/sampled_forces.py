@@ -219,17 +219,18 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
 stacked_kernel_serial = serial_twin(stacked_kernel)
 
 
-class StackedSamples:
-    """Every domain's cubature samples in one array, for one kernel call per evaluation.
+class SampleStack:
+    """Cubature samples of domains with the same mode count in one array, for one kernel
+    call and one batched GEMM per evaluation.
 
-    G (D, s_max, 9, r_max) and wV (D, s_max) (weight times rest volume), padded with
-    zero-weight samples and zero columns; the buffers are reused from step to step.
+    G (D, s_max, 9, r) and wV (D, s_max) (weight times rest volume), padded with
+    zero-weight samples; the buffers are reused from step to step.
     """
 
-    def __init__(self, sampled, r_max, material):
+    def __init__(self, sampled, r, material):
         D = len(sampled)
         s_max = max([sm.n_samples for sm in sampled] + [1])
-        self.G = np.zeros((D, s_max, 9, r_max))
+        self.G = np.zeros((D, s_max, 9, r))
         self.wV = np.zeros((D, s_max))
         self.valid = np.zeros((D, s_max), dtype=bool)
         for k, sm in enumerate(sampled):             # once per build
@@ -239,35 +240,90 @@ class StackedSamples:
             self.valid[k, :n] = True
         self.material = material
         self.energy = np.empty((D, s_max))
-        self.g = np.empty((D, s_max, r_max))
-        self.CG = np.empty((D, s_max, 9, r_max))
-        self._GT = self.G.reshape(D, s_max * 9, r_max).transpose(0, 2, 1)     # a view: K's left factor
+        self.g = np.empty((D, s_max, r))
+        self.CG = np.empty((D, s_max, 9, r))
+        self._GT = self.G.reshape(D, s_max * 9, r).transpose(0, 2, 1)     # a view: K's left factor
         self.det = np.ones((D, s_max))
-        self.det_at = None              # the q (D, r_max) that det was computed at
-        # Every real sample has a weight: the kernel forms F for all of them (a zero weight
-        # would be skipped, and inverted_count could not see it).
-        self._weighted = not np.any(self.valid & (self.wV == 0.0))
 
     def evaluate(self, q, want_hessian=True):
-        """(energy (D,), g (D, r_max), K (D, r_max, r_max) or None) at q (D, r_max)."""
+        """(energy (D,), g (D, r), K (D, r, r) or None) at q (D, r) (contiguous)."""
         D, s, _, r = self.G.shape
         m = self.material
         CG = self.CG if want_hessian else np.empty((D, 1, 9, r))
-        q = np.ascontiguousarray(q)
         pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
             self.G, self.wV, q, m.kind_id, m.params, bool(want_hessian), False,
             self.energy, self.g, CG, self.det)
-        # The state the det F below belongs to, by identity: a model's q is replaced, never
-        # changed in place, and comparing values (np.array_equal) cost a microsecond a step.
-        self.det_at = q
         energy, g = self.energy.sum(1), self.g.sum(1)
         if not want_hessian:
             return energy, g, None
         return energy, g, np.matmul(self._GT, self.CG.reshape(D, s * 9, r))
 
+
+#: Domains whose mode counts are within this ratio of a larger one share its stack (and
+#: its padded width); fewer stacks mean fewer kernel calls a step.
+BUCKET_RATIO = 0.75
+
+
+def mode_buckets(r):
+    """Groups of domains [(ids (k,), width)] for domains with mode counts r (D,): from the
+    largest count down, each group takes every domain left with at least BUCKET_RATIO of
+    its width. At most log(r_max / r_min) / log(1 / BUCKET_RATIO) + 1 groups."""
+    r = np.asarray(r, dtype=np.int64)
+    left = np.ones(len(r), dtype=bool)
+    out = []
+    while left.any():                      # a few groups: one per ratio band of mode counts
+        width = int(r[left].max())
+        ids = np.flatnonzero(left & (r >= BUCKET_RATIO * width))
+        out.append((ids, width))
+        left[ids] = False
+    return out
+
+
+class StackedSamples:
+    """Every domain's cubature samples, for a few kernel calls per evaluation: domains are
+    stacked by mode count (mode_buckets), each stack padded only to its own width. One
+    stack padded to the largest count made a hub of 30 modes cost five arms of 12 modes
+    the hub's work: on star_limbs the padded kernel did 2.5x and the GEMM 3.3x the needed
+    arithmetic (docs/performance.md, session 17).
+
+    r_max: the padded width of the model's (D, r_max) modal state.
+    """
+
+    def __init__(self, sampled, r_max, material):
+        self.D, self.r_max = len(sampled), int(r_max)
+        r = [sm.G.shape[2] for sm in sampled]
+        self.stacks = [(ids, SampleStack([sampled[k] for k in ids], width, material))
+                       for ids, width in mode_buckets(r)]
+        # One stack over every domain at the model's width: its outputs are the model's.
+        self._whole = (len(self.stacks) == 1 and self.stacks[0][1].G.shape[3] == self.r_max)
+        self.det_at = None              # the q (D, r_max) the stacks' det F were computed at
+        # Every real sample has a weight: the kernel forms F for all of them (a zero weight
+        # would be skipped, and inverted_count could not see it).
+        self._weighted = not any(np.any(st.valid & (st.wV == 0.0)) for _, st in self.stacks)
+
+    def evaluate(self, q, want_hessian=True):
+        """(energy (D,), g (D, r_max), K (D, r_max, r_max) or None) at q (D, r_max)."""
+        q = np.ascontiguousarray(q)
+        # The state the det F below belongs to, by identity: a model's q is replaced, never
+        # changed in place, and comparing values (np.array_equal) cost a microsecond a step.
+        self.det_at = q
+        if self._whole:
+            return self.stacks[0][1].evaluate(q, want_hessian)
+        D, r_max = self.D, self.r_max
+        energy, g = np.zeros(D), np.zeros((D, r_max))
+        K = np.zeros((D, r_max, r_max)) if want_hessian else None
+        for ids, st in self.stacks:        # one per band of mode counts (mode_buckets)
+            w = st.G.shape[3]
+            e_b, g_b, K_b = st.evaluate(np.ascontiguousarray(q[ids, :w]), want_hessian)
+            energy[ids], g[ids, :w] = e_b, g_b
+            if want_hessian:
+                K[ids, :w, :w] = K_b
+        return energy, g, K
+
     def inverted_count(self, q):
         """Samples with det F <= 0 (NaN counts) at q (D, r_max), read from the last
         evaluation when it was at q, else formed again (measure.inverted_samples)."""
         if self._weighted and self.det_at is q:
-            return count_not_positive(self.det, self.valid)
-        return inverted_samples(self.G, np.ascontiguousarray(q), self.valid)
+            return sum(count_not_positive(st.det, st.valid) for _, st in self.stacks)
+        return sum(inverted_samples(st.G, np.ascontiguousarray(q[ids, :st.G.shape[3]]), st.valid)
+                   for ids, st in self.stacks)
