@@ -337,6 +337,50 @@ def test_dragged_pad_reads_mu_times_the_normal_force(model):
     assert np.all(dE <= W + tol), (np.min(W - dE), tol)
 
 
+def _press_and_drag(model, offset):
+    """The dragged pad (fs.drag's press 2 mm, then 1 cm along x), its whole path shifted
+    by `offset`; after each step: (wrench on the pad (6,), contact points (k, 3), forces
+    on the body (k, 3), pad position (3,))."""
+    scene = _pressed_block(model)
+    scene["colliders"]["pad"]["position"] = list(np.add([0.0, 0.0, 0.05], offset))
+    sim = Simulator(scene)
+    out = []
+    path = [(0.0, 0.0, 0.05 - 0.002 * (k + 1) / 20) for k in range(20)] + \
+           [(0.01 * (k + 1) / 30, 0.0, 0.048) for k in range(30)]
+    for p in path:
+        sim.set_collider_pose("pad", np.add(p, offset))
+        sim.step()
+        c = sim.contacts(split=True)
+        out.append((sim.collider_wrench("pad"), c["points"], c["force"], sim.colliders["pad"].position.copy()))
+    return out
+
+
+@pytest.mark.parametrize("model", ["full", "reduced"])
+def test_pad_torque_is_the_contact_forces_moment_about_the_pad(model):
+    """collider_wrench's torque (and so ~/colliders/<name>/wrench's) is the moment of the
+    contact forces about the collider's position. Closed form: the pad (1.6 cm wider than
+    the block on every side) pressed and dragged with its whole path shifted by d across
+    the block's top meets the same body: the same contacts and forces, so the same force F
+    on the pad, and a torque about its own, shifted, position of tau(d) = tau(0) - d x F.
+    Friction is in it: while sliding F_x = -mu F_z, and tau_z picks up d_y F_x. A torque
+    about a fixed point (the world origin, the contact centroid) or of the wrong sign
+    fails it. And it is sum (p - c) x (-f) over Simulator.contacts() rows."""
+    spec = MODELS[model] if model == "full" else dict(REDUCED, modes=30)
+    d = np.array([0.0, 0.02, 0.0])
+    centred, shifted = _press_and_drag(spec, np.zeros(3)), _press_and_drag(spec, d)
+    lever = 0.05                                              # m, half the block's width
+    for (w0, p0, f0, _), (w1, p1, f1, c1) in zip(centred, shifted):
+        scale = max(np.linalg.norm(w0[:3]), 1e-300)
+        np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-12)             # the same contacts ...
+        np.testing.assert_allclose(f1, f0, rtol=0, atol=1e-12 * scale)         # ... and forces
+        # Measured: within 3.5e-15 F L (full 7.8e-16).
+        np.testing.assert_allclose(w1[3:], w0[3:] - np.cross(d, w0[:3]), rtol=0, atol=1e-12 * scale * lever)
+        np.testing.assert_allclose(w1[3:], np.cross(p1 - c1, -f1).sum(0), rtol=0, atol=1e-12 * scale * lever)
+    w = centred[-1][0]
+    assert w[0] < -0.49 * w[2] < 0                            # sliding: friction on the pad, -x
+    assert d[1] * w[0] < -0.5                                 # N m: friction's moment in tau_z is not small
+
+
 @pytest.mark.parametrize("model", ["full", "reduced"])
 def test_conveyor_carries_the_block_to_its_speed(model):
     # The floor slides along x at 0.2 m/s under a block at rest. Friction accelerates it
