@@ -46,6 +46,22 @@ def _inside_cone(c, mu):
     return bool(np.all(np.linalg.norm(c["friction"], axis=1) <= mu * c["normal_force"] + tol))
 
 
+def _energy_roundoff(sim, scale):
+    """Round-off (J) of a change of Simulator.energy() from one step to the next. The
+    neo-Hookean elastic energy is summed from tr(F^T F) - 3 and log det F per tet, each
+    with an absolute error of a few eps whatever the strain, times the moduli: a floor of
+    about eps (mu + lambda) V (V the body's volume; 61 J x eps = 1.4e-14 J for the incline
+    block), however little the body is strained. The kinetic and gravity terms (and a
+    work compared with them) carry eps of their own size, `scale` (J). Ten times the sum.
+    (The full model at rest on the incline moves its energy by at most 1.3e-15 J a step.)"""
+    mat = sim.scene["body"]["material"]
+    young, nu = float(mat["young"]), float(mat["poisson"])
+    mu, lam = young / (2 * (1 + nu)), young * nu / ((1 + nu) * (1 - 2 * nu))
+    x, tets = sim.rest_positions(), sim.body.tets
+    volume = abs(np.linalg.det(x[tets[:, 1:]] - x[tets[:, :1]])).sum() / 6.0
+    return 10.0 * np.finfo(float).eps * ((mu + lam) * volume + scale)
+
+
 def _random_problem(rng, m_end):
     """A random contact problem of 1..m_end-1 contacts: (m, W (3m, 3m) SPD, g (3m,), mu (m,))."""
     m = int(rng.integers(1, m_end))
@@ -196,6 +212,44 @@ def test_incline_below_the_friction_angle_sticks(model):
     assert _inside_cone(c, 0.5)
 
 
+# Measured (one run, 180 steps): the reduced model (1 domain, 12 modes) at rest on the
+# incline sinks up to 0.9 nm into the floor every third step and the normal contact pushes
+# it back out the next (the model's own ledger, stats()["contact_work"], reads -9.6e-10 J
+# then +9.6e-10 J): its energy grows by up to 1.0e-9 J in a step (1.7e-8 of |E|, 7,000x
+# the round-off), and friction's own work on it reaches +5.4e-11 J in a step. It is an
+# oscillation, not a pump: the energy changes by +3.3e-11 J over the last 130 steps. The
+# full model stays within 1.3e-15 J a step, and with a full-space domain the energy never
+# grows.
+REDUCED_GAINS = pytest.mark.xfail(strict=True, reason=(
+    "reduced model at rest on the incline: energy grows up to 1.0e-9 J a step (the normal contact pushes "
+    "back a 0.9 nm sink every third step); friction's work up to +5.4e-11 J a step; round-off is 1.4e-13 J"))
+
+
+@pytest.mark.parametrize("model", [pytest.param(m, marks=REDUCED_GAINS) if m == "reduced" else m for m in MODELS])
+def test_incline_below_the_friction_angle_never_gains_energy(model):
+    """Friction never creates energy (issue 18), where it sticks: on the 20 degree
+    incline the floor does not move and does no work, so the total energy (kinetic,
+    elastic, tilted gravity: the scene's Simulator.energy()) must not grow from one step
+    to the next beyond round-off, and the friction forces' work on the body over each
+    step, sum f_t . (x' - x) (forces of the implicit step, constant over it), must not be
+    positive beyond it."""
+    sim = Simulator(_incline(20.0, MODELS[model]))
+    x, e = sim.vertex_positions().copy(), sim.energy()["total"]
+    tol = _energy_roundoff(sim, abs(e))
+    growth, friction_work = [], []
+    for _ in range(180):                                      # 2 s
+        sim.step()
+        x1, e1 = sim.vertex_positions().copy(), sim.energy()["total"]
+        c = sim.model.contact
+        ids = np.asarray(c["vertices"])
+        friction_work.append(float((c["friction"] * (x1[ids] - x[ids])).sum()))
+        growth.append(e1 - e)
+        x, e = x1, e1
+    assert sum(growth) < -1e-6                                 # it settled: the check is not vacuous
+    assert max(growth) <= tol, (max(growth), tol)
+    assert max(friction_work) <= tol, (max(friction_work), tol)
+
+
 @pytest.mark.claims
 @pytest.mark.parametrize("model", list(MODELS))
 def test_incline_above_the_friction_angle_slides_at_the_closed_form(model):
@@ -253,7 +307,8 @@ def test_kinetic_friction_below_static(model):
 @pytest.mark.parametrize("model", ["full", "reduced"])
 def test_dragged_pad_reads_mu_times_the_normal_force(model):
     sim = Simulator(_pressed_block(MODELS[model] if model == "full" else dict(REDUCED, modes=30)))
-    ratios = fs.drag(sim)                                     # press 2 mm, drag 2 cm along x at 0.3 m/s
+    ledger = []
+    ratios = fs.drag(sim, ledger=ledger)                      # press 2 mm, drag 2 cm along x at 0.3 m/s
     # Once the whole top slides, the pad's tangential reaction is mu N (within 2 %), and
     # it resists the motion (on the pad: -x while it moves +x).
     assert abs(ratios[-1] - 0.5) < 0.02 * 0.5
@@ -261,6 +316,69 @@ def test_dragged_pad_reads_mu_times_the_normal_force(model):
     c = sim.contacts(split=True)
     assert _inside_cone(c, 0.5)
     np.testing.assert_allclose(sim.collider_wrench("pad")[:3], -c["force"].sum(axis=0), rtol=1e-12)
+    # Friction never creates energy. The pad is a moving kinematic collider, so the body's
+    # energy may grow, but by at most the work the pad's contact force does on it. Over a
+    # step, with f_i the contact forces on the body (constant over the implicit step), dx_i
+    # the contact points' displacement and dc the pad's translation (it does not turn):
+    #   sum f_i . dx_i = W + sum lam_n,i n_i . (dx_i - dc) + sum f_t,i . (dx_i - dc),
+    # W = -F_pad . dc (fs.drag's ledger). The normal term is -sum lam_n,i phi_i, phi_i >= 0
+    # the gap at the step's start (complementarity of the end gap; on the pad's flat face
+    # phi is exact in the positions). The friction term is <= 0: friction opposes the slip
+    # relative to the pad or there is none (Coulomb). Damping (alpha 2) and the implicit
+    # step take energy away (backward Euler's dissipation; with one Newton iteration, up
+    # to a term of third order in the step). So dE <= W every step: W - dE >= 0.
+    # (Measured: W - dE >= 1.6e-4 J a step, 24 % of W or more while sliding. The reduced
+    # model's energy leaves out its residual compliance's dent, about 0.012 J at the end,
+    # 1/2 f . dent, against E 0.095 J: W includes the work that went into the dent and E
+    # does not, so for the reduced model the check is looser by that much.)
+    dE, W = np.array(ledger).T
+    tol = _energy_roundoff(sim, np.abs(np.cumsum(dE)).max() + np.abs(W).max())   # E = 0 at rest, no gravity
+    assert W.sum() > 0 and np.cumsum(dE)[-1] > 0                # the pad did work, the body took some
+    assert np.all(dE <= W + tol), (np.min(W - dE), tol)
+
+
+def _press_and_drag(model, offset):
+    """The dragged pad (fs.drag's press 2 mm, then 1 cm along x), its whole path shifted
+    by `offset`; after each step: (wrench on the pad (6,), contact points (k, 3), forces
+    on the body (k, 3), pad position (3,))."""
+    scene = _pressed_block(model)
+    scene["colliders"]["pad"]["position"] = list(np.add([0.0, 0.0, 0.05], offset))
+    sim = Simulator(scene)
+    out = []
+    path = [(0.0, 0.0, 0.05 - 0.002 * (k + 1) / 20) for k in range(20)] + \
+           [(0.01 * (k + 1) / 30, 0.0, 0.048) for k in range(30)]
+    for p in path:
+        sim.set_collider_pose("pad", np.add(p, offset))
+        sim.step()
+        c = sim.contacts(split=True)
+        out.append((sim.collider_wrench("pad"), c["points"], c["force"], sim.colliders["pad"].position.copy()))
+    return out
+
+
+@pytest.mark.parametrize("model", ["full", "reduced"])
+def test_pad_torque_is_the_contact_forces_moment_about_the_pad(model):
+    """collider_wrench's torque (and so ~/colliders/<name>/wrench's) is the moment of the
+    contact forces about the collider's position. Closed form: the pad (1.6 cm wider than
+    the block on every side) pressed and dragged with its whole path shifted by d across
+    the block's top meets the same body: the same contacts and forces, so the same force F
+    on the pad, and a torque about its own, shifted, position of tau(d) = tau(0) - d x F.
+    Friction is in it: while sliding F_x = -mu F_z, and tau_z picks up d_y F_x. A torque
+    about a fixed point (the world origin, the contact centroid) or of the wrong sign
+    fails it. And it is sum (p - c) x (-f) over Simulator.contacts() rows."""
+    spec = MODELS[model] if model == "full" else dict(REDUCED, modes=30)
+    d = np.array([0.0, 0.02, 0.0])
+    centred, shifted = _press_and_drag(spec, np.zeros(3)), _press_and_drag(spec, d)
+    lever = 0.05                                              # m, half the block's width
+    for (w0, p0, f0, _), (w1, p1, f1, c1) in zip(centred, shifted):
+        scale = max(np.linalg.norm(w0[:3]), 1e-300)
+        np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-12)             # the same contacts ...
+        np.testing.assert_allclose(f1, f0, rtol=0, atol=1e-12 * scale)         # ... and forces
+        # Measured: within 3.5e-15 F L (full 7.8e-16).
+        np.testing.assert_allclose(w1[3:], w0[3:] - np.cross(d, w0[:3]), rtol=0, atol=1e-12 * scale * lever)
+        np.testing.assert_allclose(w1[3:], np.cross(p1 - c1, -f1).sum(0), rtol=0, atol=1e-12 * scale * lever)
+    w = centred[-1][0]
+    assert w[0] < -0.49 * w[2] < 0                            # sliding: friction on the pad, -x
+    assert d[1] * w[0] < -0.5                                 # N m: friction's moment in tau_z is not small
 
 
 @pytest.mark.parametrize("model", ["full", "reduced"])

@@ -2,6 +2,7 @@
 grids, the non-finite guard, wrench timeouts, parameter parsing."""
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -204,6 +205,98 @@ def test_collider_friction_is_a_node_parameter(tmp_path):
         assert n.sim.colliders["floor"].friction == (0.2, 0.1)
         n._srv_reset(None, None)                                        # a reset keeps the parameters' values
         assert n.sim.colliders["floor"].friction == (0.2, 0.1)
+        n.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        lease.release()
+
+
+def test_collider_posed_inside_the_body_is_counted_and_warned_about_throttled(tmp_path, monkeypatch):
+    """Issue 18, bad input: a pose that puts a collider deep inside the body is counted
+    (/diagnostics collider_poses_inside) and warned about with its depth, at most once per
+    WARN_PERIOD_S however many such poses arrive; the next warning says how many were held
+    back. The node's own path: subscription -> driver -> on_collider_inside -> _report."""
+    import yaml
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.parameter import Parameter
+    from mdss_ros import node as node_module
+    from mdss_ros.node import MdssNode, WARN_PERIOD_S
+
+    scene = {"name": "inside", "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.05},
+                                        "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3,
+                                                     "density": 1000}},
+             "colliders": {"ball": {"shape": "sphere", "radius": 0.06, "position": [0.1, 0.1, 0.2]}},
+             "model": {"kind": "full"}}
+    path = tmp_path / "inside.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    lease = DomainLease()
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        n = MdssNode(context=ctx, parameter_overrides=[Parameter("scene", value=str(path)),
+                                                         Parameter("start_paused", value=True)])
+        # The node's wall clock, held still or moved on by the test (the throttle reads
+        # time.monotonic), and its logger's warnings.
+        class Clock:
+            now = 1000.0
+
+            def monotonic(self):
+                return self.now
+
+            def __getattr__(self, name):
+                return getattr(time, name)
+        clock = Clock()
+        monkeypatch.setattr(node_module, "time", clock)
+        warned = []
+
+        class Log:
+            def warn(self, text):
+                warned.append(text)
+
+            def info(self, text):
+                pass
+            error = warning = warn
+        monkeypatch.setattr(n, "get_logger", lambda: Log())
+
+        def pose(z):
+            return convert.pose_stamped(0.0, "world", (0.1, 0.1, z))
+
+        def diag():
+            return {kv.key: kv.value for kv in n.diagnostics().status[0].values}
+        topic = "~/colliders/ball/pose"
+        # A burst of 20 poses between two steps (a publisher faster than the step), each
+        # 40 mm deep (the sphere's centre 20 mm under the top face's centre vertex) and
+        # applied before the step: 20 counted, one warning.
+        for _ in range(20):
+            assert n.submit(topic, pose(0.08))
+        n.advance()
+        assert n.driver.inside_poses == 20
+        assert diag()["collider_poses_inside"] == "20"
+        assert len(warned) == 1, warned
+        assert "~/colliders/ball/pose puts the collider 40.0 mm inside the body" in warned[0]
+        # Clear of the body: not counted, nothing said.
+        assert n.submit(topic, pose(0.3))
+        n.advance()
+        assert n.driver.inside_poses == 20 and len(warned) == 1
+        # Back to the rest shape (the count and the throttle outlive a reset). Within the
+        # period an inside pose is counted but not warned about; after it, the next one
+        # warns again and says how many were held back.
+        n._srv_reset(None, None)
+        clock.now += 0.5 * WARN_PERIOD_S
+        assert n.submit(topic, pose(0.08))
+        n.advance()
+        assert n.driver.inside_poses == 21 and len(warned) == 1
+        n._srv_reset(None, None)
+        clock.now += 0.5 * WARN_PERIOD_S + 0.1
+        assert n.submit(topic, pose(0.08))
+        n.advance()
+        assert diag()["collider_poses_inside"] == "22"
+        assert len(warned) == 2, warned
+        assert "puts the collider 40.0 mm inside the body" in warned[1]
+        assert warned[1].endswith("(and 20 more 'collider_inside' since the last warning)")
         n.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

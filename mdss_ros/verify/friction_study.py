@@ -54,17 +54,28 @@ def run_incline(sim, steps):
     return np.array(mean_x), np.array(low), np.array(energy)
 
 
-def drag(sim, steps=60):
+def drag(sim, steps=60, ledger=None):
     """Press the pad 2 mm over 20 steps, then drag it 2 cm along x over `steps`; returns
-    the pad's tangential / normal reaction after each drag step."""
-    for k in range(20):
-        sim.set_collider_pose("pad", (0.0, 0.0, 0.05 - 0.002 * (k + 1) / 20))
-        sim.step()
-    ratios = []
-    for k in range(steps):
-        sim.set_collider_pose("pad", (0.02 * (k + 1) / steps, 0.0, 0.048))
+    the pad's tangential / normal reaction after each drag step.
+
+    ledger: a list to which every step (press and drag) appends (dE, W): the change of
+    the body's energy (Simulator.energy()["total"]) and the work the pad's contact force
+    did on the body, W = -F . (c1 - c0), F the pad's reaction (collider_wrench, force on
+    the pad, constant over the implicit step) and c0 -> c1 its translation over the step
+    (the pad does not turn, so its torque does no work)."""
+    def step(position):
+        c0, e0 = sim.colliders["pad"].position.copy(), sim.energy()["total"]
+        sim.set_collider_pose("pad", position)
         sim.step()
         w = sim.collider_wrench("pad")
+        if ledger is not None:
+            ledger.append((sim.energy()["total"] - e0, -float(w[:3] @ (sim.colliders["pad"].position - c0))))
+        return w
+    for k in range(20):
+        step((0.0, 0.0, 0.05 - 0.002 * (k + 1) / 20))
+    ratios = []
+    for k in range(steps):
+        w = step((0.02 * (k + 1) / steps, 0.0, 0.048))
         ratios.append(-w[0] / w[2])
     return np.array(ratios)
 
