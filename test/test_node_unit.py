@@ -1,5 +1,6 @@
 """The node's rules in-process (no other processes): when inputs take effect, output
 grids, the non-finite guard, wrench timeouts, parameter parsing."""
+import contextlib
 import os
 import sys
 import time
@@ -18,6 +19,33 @@ from launch_testing import DomainLease  # noqa: E402
 pytestmark = pytest.mark.ros       # an rclpy node in this process (its own DDS domain)
 
 OVERRIDES = {"body.mesh.cell": 0.05, "model.domains.count": 2, "model.modes": 6}
+
+
+@contextlib.contextmanager
+def node_in_process(tmp_path, scene, parameters=()):
+    """An MdssNode on a scene dict, in this process, on a leased ROS domain limited to
+    localhost; destroyed and shut down after the block."""
+    import yaml
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.parameter import Parameter
+    from mdss_ros.node import MdssNode
+
+    path = tmp_path / f"{scene['name']}.yaml"
+    path.write_text(yaml.safe_dump(scene))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    lease = DomainLease()
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        n = MdssNode(context=ctx, parameter_overrides=[Parameter("scene", value=str(path)),
+                                                         Parameter("start_paused", value=True), *parameters])
+        yield n
+        n.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        lease.release()
 
 
 @pytest.fixture(scope="module")
@@ -172,28 +200,14 @@ def test_parse_overrides_and_ros_args():
 
 
 def test_collider_friction_is_a_node_parameter(tmp_path):
-    import yaml
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.signals import SignalHandlerOptions
     from rclpy.parameter import Parameter
-    from mdss_ros.node import MdssNode
 
     scene = {"name": "pad", "body": {"mesh": {"generator": "box", "size": [0.1, 0.1, 0.04], "cell": 0.05},
                                      "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000}},
              "colliders": {"floor": {"shape": "plane", "friction": 0.3}},
              "model": {"kind": "full"}}
-    path = tmp_path / "pad.yaml"
-    path.write_text(yaml.safe_dump(scene))
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    lease = DomainLease()
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        n = MdssNode(context=ctx, parameter_overrides=[
-            Parameter("scene", value=str(path)), Parameter("start_paused", value=True),
-            Parameter("colliders.floor.friction_static", value=0.8),
-            Parameter("colliders.floor.friction_kinetic", value=0.6)])
+    with node_in_process(tmp_path, scene, [Parameter("colliders.floor.friction_static", value=0.8),
+                                           Parameter("colliders.floor.friction_kinetic", value=0.6)]) as n:
         assert n.sim.colliders["floor"].friction == (0.8, 0.6)          # launch values replace the scene's
         bad = n.set_parameters([Parameter("colliders.floor.friction_kinetic", value=0.9)])
         assert not bad[0].successful and "must not exceed static" in bad[0].reason
@@ -205,10 +219,6 @@ def test_collider_friction_is_a_node_parameter(tmp_path):
         assert n.sim.colliders["floor"].friction == (0.2, 0.1)
         n._srv_reset(None, None)                                        # a reset keeps the parameters' values
         assert n.sim.colliders["floor"].friction == (0.2, 0.1)
-        n.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-        lease.release()
 
 
 def test_collider_posed_inside_the_body_is_counted_and_warned_about_throttled(tmp_path, monkeypatch):
@@ -216,28 +226,15 @@ def test_collider_posed_inside_the_body_is_counted_and_warned_about_throttled(tm
     (/diagnostics collider_poses_inside) and warned about with its depth, at most once per
     WARN_PERIOD_S however many such poses arrive; the next warning says how many were held
     back. The node's own path: subscription -> driver -> on_collider_inside -> _report."""
-    import yaml
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.signals import SignalHandlerOptions
-    from rclpy.parameter import Parameter
     from mdss_ros import node as node_module
-    from mdss_ros.node import MdssNode, WARN_PERIOD_S
+    from mdss_ros.node import WARN_PERIOD_S
 
     scene = {"name": "inside", "body": {"mesh": {"generator": "box", "size": [0.2, 0.2, 0.1], "cell": 0.05},
                                         "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3,
                                                      "density": 1000}},
              "colliders": {"ball": {"shape": "sphere", "radius": 0.06, "position": [0.1, 0.1, 0.2]}},
              "model": {"kind": "full"}}
-    path = tmp_path / "inside.yaml"
-    path.write_text(yaml.safe_dump(scene))
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    lease = DomainLease()
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        n = MdssNode(context=ctx, parameter_overrides=[Parameter("scene", value=str(path)),
-                                                         Parameter("start_paused", value=True)])
+    with node_in_process(tmp_path, scene) as n:
         # The node's wall clock, held still or moved on by the test (the throttle reads
         # time.monotonic), and its logger's warnings.
         class Clock:
@@ -297,7 +294,3 @@ def test_collider_posed_inside_the_body_is_counted_and_warned_about_throttled(tm
         assert len(warned) == 2, warned
         assert "puts the collider 40.0 mm inside the body" in warned[1]
         assert warned[1].endswith("(and 20 more 'collider_inside' since the last warning)")
-        n.destroy_node()
-    finally:
-        rclpy.try_shutdown(context=ctx)
-        lease.release()

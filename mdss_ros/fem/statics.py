@@ -47,3 +47,18 @@ def static_equilibrium(model, f_ext, x0=None, tol=1e-9, max_iterations=50, solve
             x = x + step * dx
             total_iters += 1
     return x, {"iterations": total_iters, "residual": res, "converged": res <= tol}
+
+
+def ramped_equilibrium(model, f_ext, ladder, accept, tol=1e-9, max_iterations=30):
+    """static_equilibrium with the load ramped over the first load-step count of `ladder`
+    whose residual gets within accept (large deformations need the ramp), else the one
+    with the smallest residual. Returns (x (n_verts, 3), info) with info["load_steps"]."""
+    best = None
+    for steps in ladder:
+        x, info = static_equilibrium(model, f_ext, tol=tol, max_iterations=max_iterations, load_steps=steps)
+        info["load_steps"] = steps
+        if best is None or info["residual"] < best[1]["residual"]:
+            best = (x, info)
+        if info["residual"] <= accept:
+            break
+    return best

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..fem.force_model import FEMForceModel
-from ..fem.statics import static_equilibrium
+from ..fem.statics import ramped_equilibrium
 from ..linear_solver import SparseSolver
 from .residual_compliance import RestStatics
 
@@ -71,7 +71,8 @@ def element_rotations(tets, grads, u):
 
 def static_poses(body, vertex_mass, cases, progress=None):
     """Static displacements (c, n, 3) of the body from rest under each LoadCase, with the
-    scene's pins held. A pinned body's force cases are nonlinear statics (_ramped); a
+    scene's pins held. A pinned body's force cases are nonlinear statics (the load ramped
+    over LOAD_STEPS); a
     floating body answers them linearly in inertia relief (RestStatics.answers, one
     factorisation for all). A pushed case is linear and holds its pushed vertices
     at their displacements, K_uu u_u = f_u - K_up u_p; on a floating body a shift 1e-9
@@ -86,7 +87,7 @@ def static_poses(body, vertex_mass, cases, progress=None):
         say = progress or (lambda msg: None)
         model = FEMForceModel(body.vertices, body.tets, body.material, pinned=body.pinned)
         for c in forced:                              # a few load cases, a Newton solve each
-            x, info = _ramped(model, np.asarray(cases[c].forces, dtype=np.float64))
+            x, info = ramped_equilibrium(model, np.asarray(cases[c].forces, dtype=np.float64), LOAD_STEPS, ACCEPT)
             say(f"training pose {c}: nonlinear statics, {info['load_steps']} load steps, residual "
                 f"{info['residual']:.1e}")
             out[c] = (x - body.vertices).ravel()
@@ -121,20 +122,6 @@ def static_poses(body, vertex_mass, cases, progress=None):
 #: Load steps tried in turn by the nonlinear training poses, and the relative residual
 #: accepted: a pose places cuts, it need not be a ground truth.
 LOAD_STEPS, ACCEPT = (1, 4, 16), 1e-6
-
-
-def _ramped(model, f_ext):
-    """(x (n, 3), info) of the first ramp in LOAD_STEPS whose statics converge, else the
-    one with the smallest residual."""
-    best = None
-    for steps in LOAD_STEPS:
-        x, info = static_equilibrium(model, f_ext, tol=1e-9, max_iterations=30, load_steps=steps)
-        info["load_steps"] = steps
-        if best is None or info["residual"] < best[1]["residual"]:
-            best = (x, info)
-        if info["residual"] <= ACCEPT:
-            break
-    return best
 
 
 def limb_bend_profile(rot, volume, s_tet, in_limb, width, reach):

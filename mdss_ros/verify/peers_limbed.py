@@ -411,15 +411,8 @@ def ramped_static(force_model, f_ext, ladder=FEM_LOAD_STEPS, what="full-space"):
     """Newton statics of a full-space force model under f_ext (n_nodes, 3), the load ramped
     over the first load-step count of `ladder` that converges (large deformations need the
     ramp). Returns (x (n_nodes, 3), info); raises ReportError if none gets within 1e-6."""
-    from ..fem.statics import static_equilibrium
-    best = None
-    for steps in ladder:
-        x, info = static_equilibrium(force_model, f_ext, tol=1e-9, max_iterations=30, load_steps=steps)
-        info["load_steps"] = steps
-        if best is None or info["residual"] < best[1]["residual"]:
-            best = (x, info)
-        if info["converged"]:
-            break
+    from ..fem.statics import ramped_equilibrium
+    best = ramped_equilibrium(force_model, f_ext, ladder, accept=1e-9)
     if best[1]["residual"] > 1e-6:
         raise ReportError(f"{what} statics did not converge: {best[1]}")
     return best
