@@ -25,8 +25,10 @@ except ImportError:
 #: for (iparm[33]). Its round-off depends on this number only, not on the threads MKL runs
 #: (measured: the same bits with MKL at 1 and 2 threads; 1-3 give one result, 4 another, 8 a
 #: third), so a fixed value keeps results independent of MKL_NUM_THREADS and of the core
-#: count. Factorising and solving the hammock's stiffness (29K DOFs) on this 2-core machine
-#: took the same time as PARDISO's defaults (refactor 180-230 ms either way, under load).
+#: count. Cost on this 2-core machine (load 3.7-4.4, the variants interleaved in one
+#: process, medians of 8): a numeric factorisation of caterpillar's stiffness (33K DOFs)
+#: 260/378 ms against 230/362 ms with the defaults (+4-13 %), hammock's (29K) 156 against
+#: 149 ms; analysis and solves about the same.
 PARDISO_CNR_THREADS = 4
 
 
