@@ -20,6 +20,7 @@ import hashlib
 import io
 import json
 import os
+import uuid
 import zipfile
 from pathlib import Path
 
@@ -177,9 +178,17 @@ class PrecomputeCache:
         buf = io.BytesIO()
         np.savez(buf, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
         p = self.path(stage, key)
-        tmp = p.with_suffix(".tmp")
-        tmp.write_bytes(buf.getvalue())
-        os.replace(tmp, p)
+        # A temporary name of this writer's own: two runs building the same entry at once
+        # (a cold cache shared by two nodes) both wrote KEY.tmp, the first rename took the
+        # other's file away and the second writer's os.replace failed its build.
+        # (Not mkstemp: its files are private to the user, the cache's keep the umask's mode.)
+        tmp = p.with_name(f"{p.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp")
+        try:
+            tmp.write_bytes(buf.getvalue())
+            os.replace(tmp, p)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         self.events.append((stage, "saved", str(p)))
         return p
 
