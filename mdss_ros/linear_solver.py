@@ -21,6 +21,45 @@ except ImportError:
     pypardiso = None
 
 
+#: The thread count PARDISO's conditional numerical reproducibility (CNR) mode splits its work
+#: for (iparm[33]). Its round-off depends on this number only, not on the threads MKL runs
+#: (measured: the same bits with MKL at 1 and 2 threads; 1-3 give one result, 4 another, 8 a
+#: third), so a fixed value keeps results independent of MKL_NUM_THREADS and of the core
+#: count. Cost on this 2-core machine (load 3.7-4.4, the variants interleaved in one
+#: process, medians of 8): a numeric factorisation of caterpillar's stiffness (33K DOFs)
+#: 260/378 ms against 230/362 ms with the defaults (+4-13 %), hammock's (29K) 156 against
+#: 149 ms; analysis and solves about the same.
+PARDISO_CNR_THREADS = 4
+
+
+def reproducible_pardiso():
+    """A pypardiso solver (real symmetric positive definite) whose results are bit for bit
+    the same from run to run (issue 17).
+
+    With its defaults (iparm[0] = 0), MKL PARDISO orders with the parallel nested
+    dissection (iparm[1] = 3: what pardisoinit of the oneMKL 2026.2 pinned here sets) and factorises with dynamic
+    scheduling: with more than one MKL thread the same matrix gave different round-off from
+    one factorisation to the next (cantilever's 3000-DOF stiffness: 16 of 29 fresh solves
+    differed from the first, about 1e-15 relative). Every build of the precompute runs
+    hundreds of such solves (shift-invert bases, modal derivatives, the full-space training
+    run, the residual compliance), so two builds of the same inputs differed by ~1e-12 in
+    the steps they gave, and runs sharing a cache stepped as whichever build wrote it last.
+    Here PARDISO gets its own defaults (pardisoinit) with the sequential METIS ordering
+    (iparm[1] = 2: the parallel one rules out CNR) and CNR on (iparm[33] > 0). iparm[0] = 1
+    tells PARDISO to take iparm as given instead of refilling its defaults."""
+    import ctypes
+    solver = pypardiso.PyPardisoSolver(mtype=2)
+    iparm = np.zeros(64, dtype=np.int32)
+    pt = np.zeros(64, dtype=np.int64)
+    solver.libmkl.pardisoinit(pt.ctypes.data_as(ctypes.c_void_p), ctypes.byref(ctypes.c_int32(2)),
+                              iparm.ctypes.data_as(ctypes.c_void_p))
+    iparm[0] = 1
+    iparm[1] = 2
+    iparm[33] = PARDISO_CNR_THREADS
+    solver.iparm[:] = iparm
+    return solver
+
+
 class NotPositiveDefinite(ArithmeticError):
     """The matrix handed to a Cholesky factorisation is not positive definite."""
 
@@ -71,7 +110,7 @@ class SparseSolver:
             upper = sp.triu(A, format="csr")
             upper.sort_indices()
             if self._solver is None:
-                self._solver = pypardiso.PyPardisoSolver(mtype=2)     # real symmetric positive definite
+                self._solver = reproducible_pardiso()     # real symmetric positive definite
             try:
                 self._factor_pardiso(upper)
             except pypardiso.pardiso_wrapper.PyPardisoError as err:

@@ -20,6 +20,7 @@ import hashlib
 import io
 import json
 import os
+import uuid
 import zipfile
 from pathlib import Path
 
@@ -30,12 +31,16 @@ MAGIC = "mdss_ros precompute v1"
 # stages after it, whose keys include its key), not the ones before.
 # "file.py::Class.method" names one function of a file that also does other things (the
 # reduced model builds its stages in a few methods; its step code is not part of them).
+# linear_solver.py: its PARDISO settings decide the round-off of every sparse solve of the
+# build (shift-invert bases, the training run, the compliance); listed under bases, whose
+# key every later stage includes, so entries built before its reproducible mode (issue 17)
+# are rebuilt rather than mixed with new ones.
 STAGE_CODE = {
     "bases": ["reduced/partition.py", "reduced/auto_domains.py", "reduced/bend_cuts.py",
               "model_build.py::training_load_cases", "model_build.py::bends_from_loads",
               "reduced/residual_compliance.py::RestStatics", "reduced/residual_compliance.py::six_supports",
-              "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py",
-              "fem/material_kernels.py", "fem/elements.py", "fem/assembly.py", "precompute.py",
+              "reduced/modal_basis.py", "reduced/domains.py", "fem/materials.py", "fem/material_kernels.py",
+              "fem/elements.py", "fem/assembly.py", "fem/statics.py", "linear_solver.py", "precompute.py",
               "reduced/reduced_model.py::ReducedModel.__init__"],
     "cubature": ["reduced/training.py", "reduced/cubature.py", "reduced/sampled_forces.py",
                  "fem/backward_euler.py", "precompute.py",
@@ -176,9 +181,17 @@ class PrecomputeCache:
         buf = io.BytesIO()
         np.savez(buf, __header__=np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **arrays)
         p = self.path(stage, key)
-        tmp = p.with_suffix(".tmp")
-        tmp.write_bytes(buf.getvalue())
-        os.replace(tmp, p)
+        # A temporary name of this writer's own: two runs building the same entry at once
+        # (a cold cache shared by two nodes) both wrote KEY.tmp, the first rename took the
+        # other's file away and the second writer's os.replace failed its build.
+        # (Not mkstemp: its files are private to the user, the cache's keep the umask's mode.)
+        tmp = p.with_name(f"{p.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp")
+        try:
+            tmp.write_bytes(buf.getvalue())
+            os.replace(tmp, p)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         self.events.append((stage, "saved", str(p)))
         return p
 

@@ -51,3 +51,53 @@ def test_steps_are_bit_identical_across_runs_and_thread_counts(tmp_path):
     assert np.abs(serial[:len(serial) // 2] - serial[:len(serial) // 2].mean(0)).max() > 0.01   # it moved
     assert np.array_equal(parallel, again)
     assert np.array_equal(serial, parallel)
+
+
+BUILD_SCENE = {
+    "name": "determinism_build",
+    "body": {"mesh": {"generator": "box", "size": [1.0, 0.1, 0.1], "cell": 0.025},
+             "material": {"model": "neohookean", "young": 2e5, "poisson": 0.3, "density": 1000},
+             "damping": {"alpha": 0.1, "beta": 0.002}},
+    "pins": [{"box": [[-0.001, -1, -1], [0.001, 1, 1]]}],
+    "handles": {"tip": {"box": [[0.999, -1, -1], [1.001, 1, 1]]}},
+    "gravity": [0.0, 0.0, -9.81],
+    "model": {"kind": "reduced", "domains": {"count": 2}, "modes": 6,
+              "cubature": {"samples": 30, "interface": "uniform", "interface_samples": 15}},
+}
+
+
+def _positions(cache_dir, steps=25):
+    from mdss_ros.precompute import PrecomputeCache
+    from mdss_ros.simulator import Simulator
+    cache = PrecomputeCache(cache_dir)
+    sim = Simulator(BUILD_SCENE, cache=cache)
+    sim.set_wrench("tip", force=(0.0, 1.0, -3.0))
+    sim.step(steps)
+    return sim.vertex_positions(), [event[:2] for event in cache.events]
+
+
+def _cache_arrays(folder):
+    out = {}
+    for f in sorted(folder.glob("*.npz")):
+        with np.load(f) as z:
+            out.update({f"{f.stem}/{k}": z[k] for k in z.files if k != "__header__"})
+    return out
+
+
+def test_a_building_run_and_a_loading_run_step_bit_identically(tmp_path):
+    """Issue 17: the run that builds the precompute (bases, training, cubature) must step
+    as every run that loads it, and two builds of the same inputs must write the same
+    bits. The build's sparse solves (PARDISO) were not reproducible with more than one
+    MKL thread: two builds differed by ~1e-12, so whichever run's build ended up in the
+    cache (concurrent runs sharing one cache: the last writer) decided every later run."""
+    built_a, events_a = _positions(tmp_path / "a")
+    built_b, events_b = _positions(tmp_path / "b")
+    loaded, events_load = _positions(tmp_path / "a")
+    assert ("cubature", "saved") in events_a and ("cubature", "saved") in events_b
+    assert ("cubature", "hit") in events_load and ("bases", "hit") in events_load
+    a, b = _cache_arrays(tmp_path / "a"), _cache_arrays(tmp_path / "b")
+    assert a.keys() == b.keys() and len(a) > 5
+    differing = [k for k in a if not np.array_equal(a[k], b[k])]
+    assert not differing, f"two builds of the same inputs wrote different {differing}"
+    assert np.array_equal(built_a, built_b)
+    assert np.array_equal(built_a, loaded)

@@ -119,3 +119,27 @@ def test_code_fingerprint_of_one_method():
             rel, _, name = item.partition("::")
             assert code_fingerprint((root / rel).read_text(), name or None) != b"missing", item
     assert code_hash("bases") != code_hash("cubature")
+
+
+def test_two_writers_of_one_entry_both_finish(tmp_path, monkeypatch):
+    """Two runs that build the same precompute at once (two nodes started on one scene, a
+    cold shared cache) both save it. They wrote it through the same temporary name
+    (KEY.tmp): the first rename moved the other's file away and the second writer's
+    os.replace raised FileNotFoundError, failing its build. Here the second writer saves
+    while the first is between writing and renaming."""
+    import mdss_ros.precompute as precompute
+    a, b = PrecomputeCache(tmp_path), PrecomputeCache(tmp_path)
+    arrays = {"x": np.arange(5.0)}
+    replace = precompute.os.replace
+    calls = []
+
+    def interleaved(src, dst):
+        calls.append(src)
+        if len(calls) == 1:
+            b.save("bases", "k", arrays)          # the other run, in the window
+        replace(src, dst)
+    monkeypatch.setattr(precompute.os, "replace", interleaved)
+    a.save("bases", "k", arrays)
+    assert len(calls) == 2 and calls[0] != calls[1]
+    assert np.array_equal(PrecomputeCache(tmp_path).load("bases", "k")[0]["x"], arrays["x"])
+    assert not list(tmp_path.glob("*.tmp"))
