@@ -76,10 +76,10 @@ class ContactRows:
             C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
         # The residual compliance's rows (residual_compliance.py): the same directions on
         # the candidate vertices' dent, in their domains' rest axes.
-        G = None
+        compliance = None
         if self.compliance is not None:
             row_of = np.searchsorted(starts, np.arange(len(verts)), side="right") - 1
-            G = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
+            compliance = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else np.linalg.norm(C, axis=1))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
@@ -94,9 +94,11 @@ class ContactRows:
             if tangents is not None:
                 tangents = tangents[movable]
                 C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
-            if G is not None:
+            if compliance is not None:
                 r = 1 if tangents is None else 3
-                G = G[(r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel()]
+                compliance = compliance.take((r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel())
+                if not compliance.G.any():                 # no row left on a candidate
+                    compliance = None
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
@@ -107,7 +109,7 @@ class ContactRows:
             self._contact_rigid = dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
-        self._contact_compliance = None if G is None or G.nnz == 0 else self.compliance.contact(G)
+        self._contact_compliance = compliance
         self._dent_cap = contact["margin"]
         # A contact point is at its reduced position plus its dent C_res G^T lam, and the gaps
         # and normals above are those of that point under the last step's forces; over the
@@ -115,7 +117,7 @@ class ContactRows:
         # the compliance in the solve, so the last one comes off every row here.
         dent_shift = None
         if self._contact_compliance is not None:
-            dent_shift = (G @ self._dent.ravel()).reshape(len(verts), -1)
+            dent_shift = self._contact_compliance.shift(self._dent).reshape(len(verts), -1)
             phi_eff -= dent_shift[:, 0]
         fric = None
         if rough:
