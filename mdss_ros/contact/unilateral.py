@@ -17,8 +17,8 @@ method, so the answer is the unilateral constraint itself, not a penalty whose r
 depends on a tuned stiffness.
 """
 import numpy as np
-import scipy.linalg as sla
 from numba import njit
+from scipy.linalg.lapack import dposv
 
 
 def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0, active=None, shift=0.0):
@@ -72,15 +72,18 @@ def solve_lcp(S, q, max_iterations=None, tol=1e-12, regularize=0.0, active=None,
 
 
 def _solve_on(S, q, active):
-    """lambda (m,): S_AA lambda_A = -q_A on the active set, zero elsewhere."""
+    """lambda (m,): S_AA lambda_A = -q_A on the active set, zero elsewhere.
+
+    Cholesky through LAPACK's posv directly: the same routine and triangle (upper) as
+    scipy.linalg.solve(assume_a="pos"), so the same numbers, without its 15-20 us of
+    argument handling a call (an LCP makes a few of these a solve, a step a few solves).
+    Not positive definite (posv's info > 0): least squares, as before."""
     lam = np.zeros(len(q))
     idx = np.flatnonzero(active)
     if idx.size:
         Sa = S[np.ix_(idx, idx)]
-        try:
-            lam[idx] = sla.solve(Sa, -q[idx], assume_a="pos", check_finite=False)
-        except (np.linalg.LinAlgError, ValueError):
-            lam[idx] = np.linalg.lstsq(Sa, -q[idx], rcond=None)[0]
+        _, x, info = dposv(Sa, -q[idx], lower=0)
+        lam[idx] = x if info == 0 else np.linalg.lstsq(Sa, -q[idx], rcond=None)[0]
     return lam
 
 
