@@ -76,8 +76,8 @@ class ResidualCompliance:
 
         Its G (m r, k): row a r + j holds direction j of contact a, turned into its
         domain's rest axes (R[domain]^T d), on the three columns of each corner vertex that
-        is a candidate; cols (k,) those columns of C (3 i + axis, ascending). dirs (k', r, 3)
-        per corner row (weights folded in), verts (k',) their vertex ids, row_of (k',) their
+        is a candidate; cols (k,) those columns of C (3 i + axis, ascending). dirs (p, r, 3)
+        per corner row (weights folded in), verts (p,) their vertex ids, row_of (p,) their
         contact, R (D, 3, 3) the domains' rotations. A contact has at most three corners, so
         G is dense on the few columns its rows touch, built by one scatter."""
         ci = self.index[verts]
@@ -94,6 +94,17 @@ class ResidualCompliance:
         np.add.at(G, ((row_of[sel] * r)[:, None, None] + np.arange(r)[None, :, None],
                       (3 * slot)[:, None, None] + np.arange(3)[None, None, :]), local)
         return ContactCompliance(G, cols, self.C)
+
+
+@njit(cache=True)
+def _gather(C, rows, cols):
+    """C[rows][:, cols] (len(rows), len(cols)) of a large C: numpy's np.ix_ indexing costs
+    1.5 to 2 times as much for these few thousand entries."""
+    out = np.empty((rows.shape[0], cols.shape[0]))
+    for i in range(rows.shape[0]):
+        for j in range(cols.shape[0]):
+            out[i, j] = C[rows[i], cols[j]]
+    return out
 
 
 @njit(cache=True)
@@ -114,11 +125,11 @@ class ContactCompliance:
     s in [0, 1] (limit_dent).
 
     A row touches at most nine columns (three corners, three axes), so every product is
-    taken on the columns its rows touch, and only those entries of C are read, in place:
-    nothing of C's size is gathered or copied a step. Gathering C's k touched rows (k x
-    3 n_c) whenever the touched set changed, as before, cost about 0.9 ms a step on
-    hammock, whose set changes nearly every step; the step then costs about the same for
-    50 candidates as for 800."""
+    taken on the columns its rows touch, and only those entries of C are read (_gather,
+    _combine_rows): nothing of C's size is gathered or copied a step. Gathering C's k
+    touched rows (k x 3 n_c) whenever the touched set changed, as before, cost about
+    0.9 ms a step on hammock, whose set changes nearly every step; the step then costs
+    about the same for 50 candidates as for 800."""
 
     def __init__(self, G, cols, C, scale=1.0):
         self.G, self.cols, self.C = G, cols, C
@@ -135,7 +146,7 @@ class ContactCompliance:
         """(len(a), len(b)) dense: s G[a] C G[b]^T."""
         ga, ca = self._on_touched(a)
         gb, cb = self._on_touched(b)
-        return self.scale * (ga @ self.C[np.ix_(self.cols[ca], self.cols[cb])] @ gb.T)
+        return self.scale * (ga @ _gather(self.C, self.cols[ca], self.cols[cb]) @ gb.T)
 
     def normal(self):
         """The same on the normal rows alone (every third row of a frictional G)."""
@@ -149,8 +160,8 @@ class ContactCompliance:
         """(rows,): s G C G[b]^T lam, the compliance's share of every row's gap."""
         gb, cb = self._on_touched(b)
         f = gb.T @ lam                                            # forces on b's columns (t,)
-        on = np.flatnonzero(f)                                    # rows with lam = 0 load none
-        return self.scale * (self.G @ (self.C[np.ix_(self.cols, self.cols[cb[on]])] @ f[on]))
+        on = np.flatnonzero(f)                                    # columns only idle rows touch
+        return self.scale * (self.G @ (_gather(self.C, self.cols, self.cols[cb[on]]) @ f[on]))
 
     def shift(self, dent):
         """(rows,): G times a dent (n_c, 3), each row's share of it (the last step's dent,
