@@ -109,10 +109,14 @@ class Collider:
     def distance(self, points):
         """phi (n,) alone at world points (n, 3). The candidate search reads it at every
         surface vertex each step and needs no normals there (for a sphere the normals were
-        half of that pass); other shapes take signed_distance's phi."""
+        half of that pass; for a plane, two thirds of it: its normals are a tiled constant
+        turned by a matrix product); other shapes take signed_distance's phi."""
         if self.shape == "sphere":
             d = np.asarray(points, dtype=np.float64) - self.position
             return np.sqrt(np.einsum("ij,ij->i", d, d)) - self.radius
+        if self.shape == "plane":
+            # The height above the local z = 0 plane: the local z axis is the rotation's last column.
+            return (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation[:, 2]
         return self.signed_distance(points)[0]
 
     def signed_distance(self, points):
