@@ -80,8 +80,10 @@ class ContactRows:
         if self.compliance is not None:
             row_of = np.searchsorted(starts, np.arange(len(verts)), side="right") - 1
             compliance = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
+        # Only compared with a threshold below: einsum needs no (m, n_gen) temporary as
+        # np.linalg.norm does (a third faster on the caterpillar's 800 floor rows).
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
-                 else np.linalg.norm(C, axis=1))
+                 else np.sqrt(np.einsum("ij,ij->i", C, C)))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
         tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
