@@ -85,6 +85,7 @@ class ContactRows:
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else np.sqrt(np.einsum("ij,ij->i", C, C)))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
+        at = rows[starts]                                                       # their rows of ids
         tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
@@ -92,7 +93,7 @@ class ContactRows:
         if not movable.all():
             verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
                                                  which[movable], xv[movable])
-            key = key[movable]
+            key, at = key[movable], at[movable]
             if tangents is not None:
                 tangents = tangents[movable]
                 C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
@@ -111,6 +112,7 @@ class ContactRows:
             self._contact_rigid = dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
+        self._contact_at = at
         self._contact_compliance = compliance
         self._dent_cap = contact["margin"]
         # A contact point is at its reduced position plus its dent C_res G^T lam, and the gaps
