@@ -131,10 +131,13 @@ class ContactCompliance:
     0.9 ms a step on hammock, whose set changes nearly every step; the step then costs
     about the same for 50 candidates as for 800."""
 
-    def __init__(self, G, cols, C, scale=1.0):
+    def __init__(self, G, cols, C, scale=1.0, products=None):
         self.G, self.cols, self.C = G, cols, C
         self.scale = float(scale)
         self._last_dent = None             # (lam, dent) of the last dent() (see dent)
+        # The unscaled blocks G[a] C G[b]^T by row sets, shared with scaled() copies:
+        # limit_dent's rounds solve the same contact under another scale, with the same blocks.
+        self._products = {} if products is None else products
 
     def _on_touched(self, rows):
         """(G[rows] on the columns it touches (len(rows), t), their indices into cols (t,))."""
@@ -143,10 +146,14 @@ class ContactCompliance:
         return g[:, on], on
 
     def block(self, a, b):
-        """(len(a), len(b)) dense: s G[a] C G[b]^T."""
-        ga, ca = self._on_touched(a)
-        gb, cb = self._on_touched(b)
-        return self.scale * (ga @ _gather(self.C, self.cols[ca], self.cols[cb]) @ gb.T)
+        """(len(a), len(b)) dense: s G[a] C G[b]^T; a, b integer row indices."""
+        key = (np.asarray(a).tobytes(), np.asarray(b).tobytes())
+        product = self._products.get(key)
+        if product is None:
+            ga, ca = self._on_touched(a)
+            gb, cb = self._on_touched(b)
+            product = self._products[key] = ga @ _gather(self.C, self.cols[ca], self.cols[cb]) @ gb.T
+        return self.scale * product
 
     def normal(self):
         """The same on the normal rows alone (every third row of a frictional G)."""
@@ -188,7 +195,7 @@ class ContactCompliance:
         return dent
 
     def scaled(self, s):
-        return ContactCompliance(self.G, self.cols, self.C, s)
+        return ContactCompliance(self.G, self.cols, self.C, s, self._products)
 
 
 #: Rounds of limit_dent, and the share of the cap they aim at.
