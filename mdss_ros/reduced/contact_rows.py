@@ -20,6 +20,19 @@ from . import reconstruct
 from .residual_compliance import limit_dent
 
 
+def _kept_solves(resolve):
+    """resolve(B) (A X = B, B (n, k)) answering a right-hand side it has seen before with
+    the same X (not written into by the contact solvers) instead of solving again."""
+    kept = {}
+
+    def solve(B):
+        key = (B.shape, B.tobytes())
+        if key not in kept:
+            kept[key] = resolve(B)
+        return kept[key]
+    return solve
+
+
 class ContactRows:
     """Contact rows of the reduced model and the correction of a Newton step for contact. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
@@ -220,17 +233,22 @@ class ContactRows:
             hint = lam_n > 0
         else:
             hint = np.isin(keys, np.concatenate(history)) if history else None
+        # limit_dent solves the same contact again under a smaller compliance, and its rounds
+        # ask the step's matrix for the same rows' solutions: they are kept for the step.
+        resolve = self._resolve if self._contact_compliance is None else _kept_solves(self._resolve)
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
         if friction is None:
+            g = C @ (Q + dQ) + phi
+
             def solve(compliance):
-                return contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint,
-                                          compliance=compliance)
+                return contact_correction(resolve, C, g, regularize=1e-9, hint=hint, compliance=compliance)
         else:
             C3, g3, mu = friction[:3]
             guess = self._contact_lam if same_step else friction[5]
+            g = C3 @ (Q + dQ) + g3
 
             def solve(compliance):
-                return frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu, regularize=1e-9,
+                return frictional_correction(resolve, C3, g, mu, regularize=1e-9,
                                              hint=hint if guess is None else None, lam_guess=guess,
                                              compliance=compliance)
         if self._contact_compliance is None:
