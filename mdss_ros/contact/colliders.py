@@ -37,6 +37,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ..errors import SceneError
 from ..rotations import matrix_from_quat
@@ -119,6 +120,20 @@ class Collider:
             return (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation[:, 2]
         return self.signed_distance(points)[0]
 
+    def near(self, points, margin):
+        """Indices (k,) of the points (n, 3) with phi < margin: the contact search's candidates.
+
+        A sphere's in one compiled pass (_sphere_near): the search runs over every surface
+        vertex each step, and distance()'s four numpy passes cost about 110 us on
+        hammock's 6882 vertices, the kernel 18 us. Its sums may round differently from
+        distance()'s einsum in the last bit, which only matters for a point at the margin
+        to round-off: a candidate that far out carries no force. Other shapes by
+        distance()."""
+        if self.shape == "sphere":
+            return _sphere_near(np.ascontiguousarray(points, dtype=np.float64), self.position,
+                                float(self.radius), float(margin))
+        return np.flatnonzero(self.distance(points) < margin)
+
     def signed_distance(self, points):
         """phi (n,) and outward normals (n, 3) at world points (n, 3)."""
         R = self.rotation
@@ -140,6 +155,19 @@ class Collider:
         else:                                                              # validated on creation
             raise ValueError(self.shape)
         return phi, n @ R.T
+
+
+@njit(cache=True)
+def _sphere_near(points, centre, radius, margin):
+    """Indices (k,) of points (n, 3) with |p - centre| - radius < margin (Collider.near)."""
+    out = np.empty(points.shape[0], dtype=np.int64)
+    k = 0
+    for i in range(points.shape[0]):
+        d0, d1, d2 = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - radius < margin:
+            out[k] = i
+            k += 1
+    return out[:k]
 
 
 def _sphere(p, radius):

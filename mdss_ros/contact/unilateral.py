@@ -214,7 +214,7 @@ def find_contacts(colliders, x, x_pred, margin):
     """
     rows, which, phis, normals = [], [], [], []
     for c_idx, col in enumerate(colliders):
-        near = np.flatnonzero(col.distance(x_pred) < margin)
+        near = col.near(x_pred, margin)
         if near.size == 0:
             continue
         phi_now, n_now = col.signed_distance(x[near])
