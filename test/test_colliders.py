@@ -38,6 +38,19 @@ def test_distance_is_the_phi_of_signed_distance(shape):
     np.testing.assert_allclose(c.distance(p), c.signed_distance(p)[0], rtol=0, atol=1e-14)
 
 
+@pytest.mark.parametrize("shape", list(SPECS))
+def test_near_is_where_distance_is_below_the_margin(shape):
+    """Collider.near (compiled for a sphere) selects the points distance() puts within the
+    margin."""
+    c = make_collider("c", SPECS[shape])
+    c.set_pose([0.1, -0.2, 0.3], quat_from_matrix(exp_so3(np.array([0.3, -0.5, 0.8]))))
+    p = c.position + np.random.default_rng(3).uniform(-0.8, 0.8, size=(2000, 3))
+    for margin in (0.0, 0.05, 0.3):
+        near = c.near(p, margin)
+        np.testing.assert_array_equal(near, np.flatnonzero(c.distance(p) < margin))
+        assert near.dtype == np.int64
+
+
 def test_triangle_culling_kernels_match_numpy():
     """unilateral.longest_edge_squared and triangles_near_segment against numpy on a random
     soup, for a sphere (a == b) and a segment."""

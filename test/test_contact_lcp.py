@@ -132,6 +132,31 @@ def test_triangle_cull_keeps_every_face_the_exact_test_finds(shape):
     assert found > 3
 
 
+def test_sphere_narrow_phase_is_the_numpy_one_bit_for_bit():
+    """sphere_triangles_closest (compiled) keeps the triangles whose bounding sphere about
+    the corners' mean comes within reach of the centre, and gives
+    closest_points_on_triangles' distances and barycentric coordinates exactly: points in
+    every Voronoi region of a triangle (inside, beyond each edge and each corner)."""
+    from mdss_ros.contact.unilateral import sphere_triangles_closest
+    from mdss_ros.loads import closest_points_on_triangles
+    rng = np.random.default_rng(11)
+    positions = rng.standard_normal((80, 3))
+    triangles = np.array([rng.choice(80, 3, replace=False) for _ in range(400)], dtype=np.int64)
+    for centre, reach in ((np.zeros(3), 0.7), (rng.standard_normal(3), 1.5), (np.array([0.3, -0.2, 0.1]), 0.2)):
+        near = np.sort(rng.choice(len(triangles), 300, replace=False))
+        kept, d2, bary = sphere_triangles_closest(positions, triangles, near, centre, reach)
+        tri = positions[triangles[near]]
+        centroid = tri.mean(axis=1)
+        spread = np.linalg.norm(tri - centroid[:, None, :], axis=2).max(axis=1)
+        expect = np.flatnonzero(np.linalg.norm(centroid - centre, axis=1) < reach + spread)
+        np.testing.assert_array_equal(kept, expect)
+        d2_ref, bary_ref = closest_points_on_triangles(centre, tri[kept, 0], tri[kept, 1], tri[kept, 2])
+        np.testing.assert_array_equal(d2, d2_ref)
+        np.testing.assert_array_equal(bary, bary_ref)
+        regions = (bary_ref > 0).sum(axis=1)
+        assert {1, 2, 3} <= set(regions.tolist())          # corners, edges and faces all met
+
+
 def test_resting_reduced_block_solves_only_for_the_contacts_that_carry_it():
     """Warm start across steps: once a reduced block rests on the floor, the LCP's working
     set is the set of load-carrying contacts of the last step, not every bottom vertex the

@@ -8,7 +8,7 @@ import pytest
 from mdss_ros import Simulator
 from mdss_ros.fem.force_model import FEMForceModel
 from mdss_ros.reduced.modal_basis import rigid_modes
-from mdss_ros.reduced.residual_compliance import build_residual_compliance, kinematics_at_rest
+from mdss_ros.reduced.residual_compliance import ResidualCompliance, build_residual_compliance, kinematics_at_rest
 from mdss_ros.rotations import exp_so3_batch
 
 
@@ -159,6 +159,52 @@ def test_the_dent_is_state_a_snapshot_restores():
     np.testing.assert_array_equal(sim.vertex_positions(), x0)
     sim.step()
     np.testing.assert_array_equal(sim.vertex_positions(), x1)
+
+
+def test_contact_compliance_products_are_the_dense_formulas():
+    """ContactCompliance keeps G dense on the columns its rows touch and reads C in place;
+    its block, apply, dent and shift equal s G C G^T, s G C G[b]^T lam, s C G^T lam and
+    G dent with G (rows, 3 n_c) written out one corner at a time. Corners off the
+    candidate set add nothing; a face's three corners share a contact row."""
+    rng = np.random.default_rng(7)
+    n_c, n_verts, r, m = 12, 20, 3, 5
+    A = rng.standard_normal((3 * n_c, 3 * n_c))
+    C = A @ A.T
+    candidates = np.arange(4, 4 + n_c)
+    domain = rng.integers(0, 2, n_c)
+    comp = ResidualCompliance.on(candidates, domain, C, n_verts, {})
+    R = exp_so3_batch(rng.standard_normal((2, 3)))
+    # Five contacts: vertex contacts and faces (three corners), some corners not candidates.
+    verts = np.array([5, 0, 7, 9, 15, 6, 1, 12, 13, 2])
+    row_of = np.array([0, 1, 2, 2, 2, 3, 3, 3, 4, 4])
+    dirs = rng.standard_normal((len(verts), r, 3))
+    cc = comp.rows(dirs, verts, row_of, m, R)
+    G = np.zeros((m * r, 3 * n_c))
+    for i, v in enumerate(verts):
+        k = comp.index[v]
+        if k >= 0:
+            G[row_of[i] * r + np.arange(r)[:, None], 3 * k + np.arange(3)] += dirs[i] @ R[domain[k]]
+    s = 0.4
+    cs = cc.scaled(s)
+    a, b = np.array([0, 4, 7, 13]), np.array([2, 3, 7, 11, 14])
+    lam = rng.uniform(0.0, 1.0, len(b))
+    lam[1] = 0.0
+    np.testing.assert_allclose(cs.block(a, b), s * G[a] @ C @ G[b].T, rtol=1e-12, atol=1e-12 * np.abs(C).max())
+    np.testing.assert_allclose(cs.apply(b, lam), s * G @ C @ G[b].T @ lam, rtol=1e-12,
+                               atol=1e-12 * np.abs(C).max())
+    lam_all = rng.uniform(0.0, 1.0, m * r)
+    lam_all[:r] = 0.0
+    dent = cs.dent(lam_all)
+    np.testing.assert_allclose(dent, (s * C @ G.T @ lam_all).reshape(-1, 3), rtol=1e-12,
+                               atol=1e-12 * np.abs(C).max())
+    assert cs.dent(lam_all.copy()) is dent                  # kept for the same forces
+    np.testing.assert_allclose(cs.shift(dent), G @ dent.ravel(), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(cc.normal().block(np.arange(m), np.arange(m)), G[0::r] @ C @ G[0::r].T,
+                               rtol=1e-12, atol=1e-12 * np.abs(C).max())
+    keep = np.array([0, 1, 2, 9, 10, 11])
+    np.testing.assert_allclose(cc.take(keep).block(np.arange(6), np.arange(6)), G[keep] @ C @ G[keep].T,
+                               rtol=1e-12, atol=1e-12 * np.abs(C).max())
+    assert comp.rows(dirs[1:2], verts[1:2], np.zeros(1, dtype=np.int64), 1, R) is None   # vertex 0: no candidate
 
 
 def test_candidates_are_the_surface_vertices_nearest_the_collider_paths():

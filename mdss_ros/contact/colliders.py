@@ -37,6 +37,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ..errors import SceneError
 from ..rotations import matrix_from_quat
@@ -109,11 +110,32 @@ class Collider:
     def distance(self, points):
         """phi (n,) alone at world points (n, 3). The candidate search reads it at every
         surface vertex each step and needs no normals there (for a sphere the normals were
-        half of that pass); other shapes take signed_distance's phi."""
+        half of that pass; for a plane, two thirds of it: its normals are a tiled constant
+        turned by a matrix product); other shapes take signed_distance's phi."""
         if self.shape == "sphere":
             d = np.asarray(points, dtype=np.float64) - self.position
             return np.sqrt(np.einsum("ij,ij->i", d, d)) - self.radius
+        if self.shape == "plane":
+            # The height above the local z = 0 plane: the local z axis is the rotation's last column.
+            return (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation[:, 2]
         return self.signed_distance(points)[0]
+
+    def near(self, points, margin):
+        """Indices (k,) of the points (n, 3) with phi < margin: the contact search's candidates.
+
+        A sphere's and a plane's in one compiled pass (_sphere_near, _plane_near): the
+        search runs over every surface vertex each step, and distance()'s numpy passes cost
+        about 110 us on hammock's 6882 vertices (sphere) and 45 us on the caterpillar's
+        4964 (floor), the kernels 18 and 14 us. Their sums may round differently from
+        distance()'s in the last bit, which only matters for a point at the margin to
+        round-off: a candidate that far out carries no force. Other shapes by distance()."""
+        if self.shape == "sphere":
+            return _sphere_near(np.ascontiguousarray(points, dtype=np.float64), self.position,
+                                float(self.radius), float(margin))
+        if self.shape == "plane":
+            return _plane_near(np.ascontiguousarray(points, dtype=np.float64), self.position,
+                               np.ascontiguousarray(self.rotation[:, 2]), float(margin))
+        return np.flatnonzero(self.distance(points) < margin)
 
     def signed_distance(self, points):
         """phi (n,) and outward normals (n, 3) at world points (n, 3)."""
@@ -136,6 +158,33 @@ class Collider:
         else:                                                              # validated on creation
             raise ValueError(self.shape)
         return phi, n @ R.T
+
+
+@njit(cache=True)
+def _sphere_near(points, centre, radius, margin):
+    """Indices (k,) of points (n, 3) with |p - centre| - radius < margin (Collider.near)."""
+    out = np.empty(points.shape[0], dtype=np.int64)
+    k = 0
+    for i in range(points.shape[0]):
+        d0, d1, d2 = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - radius < margin:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
+@njit(cache=True)
+def _plane_near(points, origin, normal, margin):
+    """Indices (k,) of points (n, 3) with (p - origin) . normal < margin (Collider.near)."""
+    out = np.empty(points.shape[0], dtype=np.int64)
+    k = 0
+    for i in range(points.shape[0]):
+        h = ((points[i, 0] - origin[0]) * normal[0] + (points[i, 1] - origin[1]) * normal[1]
+             + (points[i, 2] - origin[2]) * normal[2])
+        if h < margin:
+            out[k] = i
+            k += 1
+    return out[:k]
 
 
 def _sphere(p, radius):

@@ -20,6 +20,19 @@ from . import reconstruct
 from .residual_compliance import limit_dent
 
 
+def _kept_solves(resolve):
+    """resolve(B) (A X = B, B (n, k)) answering a right-hand side it has seen before with
+    the same X (not written into by the contact solvers) instead of solving again."""
+    kept = {}
+
+    def solve(B):
+        key = (B.shape, B.tobytes())
+        if key not in kept:
+            kept[key] = resolve(B)
+        return kept[key]
+    return solve
+
+
 class ContactRows:
     """Contact rows of the reduced model and the correction of a Newton step for contact. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
@@ -76,13 +89,16 @@ class ContactRows:
             C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
         # The residual compliance's rows (residual_compliance.py): the same directions on
         # the candidate vertices' dent, in their domains' rest axes.
-        G = None
+        compliance = None
         if self.compliance is not None:
             row_of = np.searchsorted(starts, np.arange(len(verts)), side="right") - 1
-            G = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
+            compliance = self.compliance.rows(dirs, verts, row_of, len(starts), self.frames.R)
+        # Only compared with a threshold below: einsum needs no (m, n_gen) temporary as
+        # np.linalg.norm does (a third faster on the caterpillar's 800 floor rows).
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
-                 else np.linalg.norm(C, axis=1))
+                 else np.sqrt(np.einsum("ij,ij->i", C, C)))
         verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
+        at = rows[starts]                                                       # their rows of ids
         tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
@@ -90,13 +106,15 @@ class ContactRows:
         if not movable.all():
             verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
                                                  which[movable], xv[movable])
-            key = key[movable]
+            key, at = key[movable], at[movable]
             if tangents is not None:
                 tangents = tangents[movable]
                 C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
-            if G is not None:
+            if compliance is not None:
                 r = 1 if tangents is None else 3
-                G = G[(r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel()]
+                compliance = compliance.take((r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel())
+                if not compliance.G.any():                 # no row left on a candidate
+                    compliance = None
             if len(verts) == 0:
                 return None
         phi_eff = phi.copy()
@@ -107,7 +125,8 @@ class ContactRows:
             self._contact_rigid = dt * np.einsum("li,li->l", normals, rigid_v)
             phi_eff += self._contact_rigid
         self._contact_row_keys = key
-        self._contact_compliance = None if G is None or G.nnz == 0 else self.compliance.contact(G)
+        self._contact_at = at
+        self._contact_compliance = compliance
         self._dent_cap = contact["margin"]
         # A contact point is at its reduced position plus its dent C_res G^T lam, and the gaps
         # and normals above are those of that point under the last step's forces; over the
@@ -115,7 +134,7 @@ class ContactRows:
         # the compliance in the solve, so the last one comes off every row here.
         dent_shift = None
         if self._contact_compliance is not None:
-            dent_shift = (G @ self._dent.ravel()).reshape(len(verts), -1)
+            dent_shift = self._contact_compliance.shift(self._dent).reshape(len(verts), -1)
             phi_eff -= dent_shift[:, 0]
         fric = None
         if rough:
@@ -214,17 +233,22 @@ class ContactRows:
             hint = lam_n > 0
         else:
             hint = np.isin(keys, np.concatenate(history)) if history else None
+        # limit_dent solves the same contact again under a smaller compliance, and its rounds
+        # ask the step's matrix for the same rows' solutions: they are kept for the step.
+        resolve = self._resolve if self._contact_compliance is None else _kept_solves(self._resolve)
         # Rows through a few modes per domain are often dependent: regularise (unilateral.py).
         if friction is None:
+            g = C @ (Q + dQ) + phi
+
             def solve(compliance):
-                return contact_correction(self._resolve, C, C @ (Q + dQ) + phi, regularize=1e-9, hint=hint,
-                                          compliance=compliance)
+                return contact_correction(resolve, C, g, regularize=1e-9, hint=hint, compliance=compliance)
         else:
             C3, g3, mu = friction[:3]
             guess = self._contact_lam if same_step else friction[5]
+            g = C3 @ (Q + dQ) + g3
 
             def solve(compliance):
-                return frictional_correction(self._resolve, C3, C3 @ (Q + dQ) + g3, mu, regularize=1e-9,
+                return frictional_correction(resolve, C3, g, mu, regularize=1e-9,
                                              hint=hint if guess is None else None, lam_guess=guess,
                                              compliance=compliance)
         if self._contact_compliance is None:

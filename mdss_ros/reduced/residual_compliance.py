@@ -33,11 +33,12 @@ and no damping, and it is the compliance at rest, rotated with its domain's fram
 
 Shapes: n_c candidate vertices, n_dofs = 3 n_verts, n_gen generalised DOFs.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+from numba import njit
 
 from ..fem.force_model import FEMForceModel
 from ..linear_solver import SparseSolver
@@ -58,10 +59,6 @@ class ResidualCompliance:
     C: np.ndarray
     index: np.ndarray
     info: dict
-    #: The last gather of C on a set of columns (contact): a contact held over steps touches
-    #: the same columns, and gathering k rows of a (3 n_c)^2 matrix is most of what the
-    #: compliance costs a step (hertz_block, 800 candidates: about 1 ms a gather).
-    _gathered: dict = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def on(cls, vertices, domain, C, n_verts, info):
@@ -74,69 +71,131 @@ class ResidualCompliance:
     def n(self):
         return len(self.vertices)
 
-    def contact(self, G):
-        """The ContactCompliance of contact rows G (rows(...)), on the columns they touch."""
-        cols = np.unique(G.indices)
-        key = cols.tobytes()
-        if self._gathered.get("key") != key:
-            rows = self.C[cols]                                                  # (k, 3 n_c)
-            self._gathered.clear()
-            self._gathered.update(key=key, Ckk=np.ascontiguousarray(rows[:, cols]), rows=rows)
-        return ContactCompliance(G[:, cols].tocsr(), self._gathered["Ckk"], self._gathered["rows"])
-
     def rows(self, dirs, verts, row_of, m, R):
-        """G (m r, 3 n_c) CSR: row a r + j holds direction j of contact a, turned into its
-        domain's rest axes (R[domain]^T d), on the columns of each corner vertex that is a
-        candidate. dirs (k, r, 3) per corner row (weights folded in), verts (k,) their vertex
-        ids, row_of (k,) their contact, R (D, 3, 3) the domains' rotations. None when no
-        corner is a candidate."""
+        """The ContactCompliance of m contacts' rows, or None when no corner is a candidate.
+
+        Its G (m r, k): row a r + j holds direction j of contact a, turned into its
+        domain's rest axes (R[domain]^T d), on the three columns of each corner vertex that
+        is a candidate; cols (k,) those columns of C (3 i + axis, ascending). dirs (p, r, 3)
+        per corner row (weights folded in), verts (p,) their vertex ids, row_of (p,) their
+        contact, R (D, 3, 3) the domains' rotations. A contact has at most three corners, so
+        G is dense on the few columns its rows touch, built by one scatter."""
         ci = self.index[verts]
         sel = np.flatnonzero(ci >= 0)
         if sel.size == 0:
             return None
         r = dirs.shape[1]
         local = np.einsum("krj,kji->kri", dirs[sel], R[self.domain[ci[sel]]])            # (s, r, 3)
-        shape = local.shape
-        rows = np.broadcast_to((row_of[sel][:, None] * r + np.arange(r))[:, :, None], shape)
-        cols = np.broadcast_to((3 * ci[sel])[:, None, None] + np.arange(3), shape)
-        return sp.csr_matrix((local.ravel(), (rows.ravel(), cols.ravel())), shape=(m * r, 3 * self.n))
+        touched, slot = np.unique(ci[sel], return_inverse=True)                          # candidates (t,)
+        cols = (3 * touched[:, None] + np.arange(3)).ravel()                              # (3 t,)
+        G = np.zeros((m * r, len(cols)))
+        # Summed, not assigned: two corners of one contact on the same vertex would add, as
+        # the sparse build did (a face's corners are distinct vertices, so none do).
+        np.add.at(G, ((row_of[sel] * r)[:, None, None] + np.arange(r)[None, :, None],
+                      (3 * slot)[:, None, None] + np.arange(3)[None, None, :]), local)
+        return ContactCompliance(G, cols, self.C)
+
+
+@njit(cache=True)
+def _gather(C, rows, cols):
+    """C[rows][:, cols] (len(rows), len(cols)) of a large C: numpy's np.ix_ indexing costs
+    1.5 to 2 times as much for these few thousand entries."""
+    out = np.empty((rows.shape[0], cols.shape[0]))
+    for i in range(rows.shape[0]):
+        for j in range(cols.shape[0]):
+            out[i, j] = C[rows[i], cols[j]]
+    return out
+
+
+@njit(cache=True)
+def _combine_rows(C, rows, f, out):
+    """out (n,) += sum_i f[i] C[rows[i], :]: a few rows of a large C (n, n) in place, with
+    no copy of them."""
+    for i in range(rows.shape[0]):
+        row, fi = rows[i], f[i]
+        for j in range(C.shape[1]):
+            out[j] += fi * C[row, j]
 
 
 class ContactCompliance:
     """The residual compliance as the contact solvers see it (unilateral.contact_correction,
-    friction.frictional_correction): blocks of s G C_res G^T between row sets, and its
-    product with forces on some rows. G (rows, 3 n_c) CSR, C (3 n_c, 3 n_c), scale s in
-    [0, 1] (limit_dent).
+    friction.frictional_correction): blocks of s G C_res G^T between row sets, its product
+    with forces on some rows, and the dent those forces make. G (rows, k) dense on cols
+    (k,), the columns of C (3 n_c, 3 n_c) the rows touch (ResidualCompliance.rows); scale
+    s in [0, 1] (limit_dent).
 
-    Only the k columns of G that a contact row touches matter to the solve, so G and C are
-    kept on those (ResidualCompliance.contact): G (rows, k), Ckk (k, k), and C's k rows
-    (k, 3 n_c) for the dent, which every candidate takes from its neighbours' forces (C is
-    symmetric: rows, not columns, are the contiguous gather). The step then costs about
-    the same for 50 candidates as for 800 (soft_finger held 3 mm in, before this: 3.2 and
-    8.1 ms)."""
+    A row touches at most nine columns (three corners, three axes), so every product is
+    taken on the columns its rows touch, and only those entries of C are read (_gather,
+    _combine_rows): nothing of C's size is gathered or copied a step. Gathering C's k
+    touched rows (k x 3 n_c) whenever the touched set changed, as before, cost about
+    0.9 ms a step on hammock, whose set changes nearly every step; the step then costs
+    about the same for 50 candidates as for 800."""
 
-    def __init__(self, G, Ckk, C_k, scale=1.0):
-        self.G, self.Ckk, self.C_k = G, Ckk, C_k
+    def __init__(self, G, cols, C, scale=1.0, products=None):
+        self.G, self.cols, self.C = G, cols, C
         self.scale = float(scale)
+        self._last_dent = None             # (lam, dent) of the last dent() (see dent)
+        # The unscaled blocks G[a] C G[b]^T by row sets, shared with scaled() copies:
+        # limit_dent's rounds solve the same contact under another scale, with the same blocks.
+        self._products = {} if products is None else products
+
+    def _on_touched(self, rows):
+        """(G[rows] on the columns it touches (len(rows), t), their indices into cols (t,))."""
+        g = self.G[rows]
+        on = np.flatnonzero(g.any(axis=0))
+        return g[:, on], on
 
     def block(self, a, b):
-        """(len(a), len(b)) dense: s G[a] C G[b]^T."""
-        return self.scale * np.asarray((self.G[a] @ self.Ckk) @ self.G[b].T.toarray())
+        """(len(a), len(b)) dense: s G[a] C G[b]^T; a, b integer row indices."""
+        key = (np.asarray(a).tobytes(), np.asarray(b).tobytes())
+        product = self._products.get(key)
+        if product is None:
+            ga, ca = self._on_touched(a)
+            gb, cb = self._on_touched(b)
+            product = self._products[key] = ga @ _gather(self.C, self.cols[ca], self.cols[cb]) @ gb.T
+        return self.scale * product
 
     def normal(self):
         """The same on the normal rows alone (every third row of a frictional G)."""
-        return ContactCompliance(self.G[0::3], self.Ckk, self.C_k, self.scale)
+        return ContactCompliance(self.G[0::3], self.cols, self.C, self.scale)
+
+    def take(self, rows):
+        """The same on some of its rows (rows: indices or a mask)."""
+        return ContactCompliance(self.G[rows], self.cols, self.C, self.scale)
 
     def apply(self, b, lam):
         """(rows,): s G C G[b]^T lam, the compliance's share of every row's gap."""
-        return self.scale * (self.G @ (self.Ckk @ (self.G[b].T @ lam)))
+        gb, cb = self._on_touched(b)
+        f = gb.T @ lam                                            # forces on b's columns (t,)
+        on = np.flatnonzero(f)                                    # columns only idle rows touch
+        return self.scale * (self.G @ (_gather(self.C, self.cols, self.cols[cb[on]]) @ f[on]))
+
+    def shift(self, dent):
+        """(rows,): G times a dent (n_c, 3), each row's share of it (the last step's dent,
+        which the rows' gaps already hold)."""
+        return self.G @ dent.ravel()[self.cols]
 
     def dent(self, lam):
-        """(n_c, 3) every candidate's dent in its domain's rest axes: s C G^T lam."""
-        return self.scale * (self.C_k.T @ (self.G.T @ lam)).reshape(-1, 3)
+        """(n_c, 3) every candidate's dent in its domain's rest axes: s C G^T lam.
+
+        limit_dent measures the dent of its answer and the step then keeps the same dent as
+        state, so the last one is kept and returned again (read-only) for the same forces."""
+        lam = np.asarray(lam, dtype=np.float64)
+        last = self._last_dent
+        if last is not None and last[0].shape == lam.shape and np.array_equal(last[0], lam):
+            return last[1]
+        f = self.G.T @ lam                                        # forces on the columns (k,)
+        on = np.flatnonzero(f)
+        out = np.zeros(self.C.shape[1])
+        # C is symmetric: C G^T lam is a sum of C's rows on the loaded columns.
+        _combine_rows(self.C, self.cols[on], f[on], out)
+        dent = (self.scale * out).reshape(-1, 3)
+        dent.flags.writeable = False
+        self._last_dent = (lam.copy(), dent)
+        return dent
 
     def scaled(self, s):
-        return ContactCompliance(self.G, self.Ckk, self.C_k, s)
+        return ContactCompliance(self.G, self.cols, self.C, s, self._products)
 
 
 #: Rounds of limit_dent, and the share of the cap they aim at.
