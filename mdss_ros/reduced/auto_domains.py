@@ -119,11 +119,12 @@ def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segme
 
     vertices (n, 3); tets (m, 4); graph: the (n, n) edge-length graph (partition.vertex_graph
     with weights=vertices); poses: None, or a callable giving the scene's training poses
-    (case labels [str], displacements (c, n, 3)), called only when there are limbs and
-    max_bend > 0: each limb is then cut where they bend it more than max_bend degrees
-    (bend_cuts.py). Returns (labels (n,) int64, names [str], notes [str]): label 0 is
-    "core", then "limb0", "limb1", ... (or "limb0_0", "limb0_1", ... with segments or bend
-    cuts), limbs ordered by decreasing reach; notes say where each cut is and why.
+    (case labels [str], displacements (c, n, 3)), called only when max_bend > 0: each limb
+    (or a body without limbs, from its calmest part) is then cut where they bend it more
+    than max_bend degrees (bend_cuts.py). Returns (labels (n,) int64, names [str], notes
+    [str]): label 0 is "core", then "limb0", "limb1", ... (or "limb0_0", "limb0_1", ...
+    with segments or bend cuts; "bend1", "bend2", ... on a body without limbs), limbs
+    ordered by decreasing reach; notes say where each cut is and why.
     """
     n = len(vertices)
     surf = surface_vertices(tets)
