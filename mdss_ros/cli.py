@@ -504,7 +504,7 @@ def main(argv=None):
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("verify", help="verification reports (JSON + PNG plots into --out)")
-    p.add_argument("name", help="energy, coupling, reduced, cantilever or all")
+    p.add_argument("name", help="energy, coupling, reduced, cantilever, modes, cubature, hertz, meshless, contact, friction or all")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--quick", action="store_true", help="a small version of the report")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",

@@ -401,3 +401,23 @@ def test_conveyor_carries_the_block_to_its_speed(model):
     # Travel: the floor's, less the slip while it caught up (v^2 / (2 mu g) behind at most).
     lag = speed * DT * 45 - positions[-1, 0]
     assert 0.0 < lag < 1.5 * speed ** 2 / (2 * 0.5 * G) + speed * DT
+
+
+def test_verify_friction_reports_the_incline_beside_the_peer(tmp_path):
+    """`mdss verify friction` (quick: 1 s): our reduced row sticks and slides as the
+    closed form; MuJoCo's quadratic flex rows, when MuJoCo is installed, are measured on
+    the same block; the plot is written."""
+    from mdss_ros.verify.reports import run_report
+    from mdss_ros.verify.peers import mujoco_module
+    out = run_report("friction", tmp_path, quick=True, overrides={"models": ["reduced"]})
+    rows = {r["model"]: r for r in out["rows"]}
+    mine = rows["reduced"]
+    assert mine["creep_m"] < 1e-6
+    assert abs(mine["a_error"]) < 0.01
+    assert mine["lift_m"] < 5e-4
+    assert mine["step_ms"] > 0
+    if mujoco_module()[0] is not None:
+        assert {"MuJoCo quadratic, pyramidal", "MuJoCo quadratic, elliptic"} <= set(rows)
+        assert all(np.isfinite(r["creep_m"]) and r["step_ms"] > 0 for r in rows.values())
+    assert (tmp_path / "friction_incline.png").stat().st_size > 10_000
+    assert (tmp_path / "friction.json").exists()

@@ -8,7 +8,7 @@ from pathlib import Path
 from ..errors import ReportError
 from .reduced_reports import Progress, environment, format_table, write_json
 
-BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz", "meshless", "contact")
+BUILT = ("energy", "coupling", "reduced", "cantilever", "modes", "cubature", "hertz", "meshless", "contact", "friction")
 NOT_BUILT = ()
 
 
@@ -40,6 +40,9 @@ def _study(name):
     if name == "contact":
         from .contact_study import contact_report
         return contact_report
+    if name == "friction":
+        from .friction_study import friction_report
+        return friction_report
     raise KeyError(name)
 
 
