@@ -108,8 +108,9 @@ def collider_displacement(collider, start, points):
 
 def solve_coulomb(W, g, mu, lam0=None, tol=1e-12):
     """lambda (m, 3) of the Coulomb contact problem w = W lambda + g (see the module
-    docstring). W (3m, 3m) symmetric positive definite (callers add a small diagonal shift
-    where rows are dependent), rows in contact order (n, t1, t2); g (3m,); mu (m,) each
+    docstring). W (3m, 3m) symmetric positive definite (where rows are dependent and W is
+    singular, solve_proximal solves it by rounds of this on a shifted W), rows in contact
+    order (n, t1, t2); g (3m,); mu (m,) each
     contact's coefficient (static or kinetic: effective_mu). lam0 (m, 3): a first guess
     (default: the frictionless LCP's answer, no tangential force). Returns (lambda (m, 3),
     info) with info["stick"], info["slip"] (m,) bool and info["unconverged"].
@@ -499,19 +500,78 @@ def _newton_numpy(W, g, mu, lam0, tol, max_iterations):
 
 
 def _positive(W, shift):
-    """W + shift I, made positive definite if it is not: an indefinite step matrix A (a
-    reduced model's implicit fictitious forces at a large step, solved by LU) gives an
-    indefinite W = C A^-1 C^T, where the contact problem has no bounded answer (forces
-    of 1e9 N were seen). Its eigenvalues are then lifted to at least the shift, so the
-    contact stays finite and the guard judges the step (it retries such steps with
-    sub-steps, where A is positive again)."""
+    """(W + shift I, lifted): made positive definite if it is not. An indefinite step
+    matrix A (a reduced model's implicit fictitious forces at a large step, solved by LU)
+    gives an indefinite W = C A^-1 C^T, where the contact problem has no bounded answer
+    (forces of 1e9 N were seen). Its eigenvalues are then lifted to at least the shift, so
+    the contact stays finite and the guard judges the step (it retries such steps with
+    sub-steps, where A is positive again); lifted says so."""
     Ws = W + shift * np.eye(len(W))
     try:
         np.linalg.cholesky(Ws)
-        return Ws
+        return Ws, False
     except np.linalg.LinAlgError:
         low = float(np.linalg.eigvalsh(Ws)[0])
-        return Ws + (max(shift, 1e-9 * float(np.mean(np.abs(np.diag(W))))) - low) * np.eye(len(W))
+        return Ws + (max(shift, 1e-9 * float(np.mean(np.abs(np.diag(W))))) - low) * np.eye(len(W)), True
+
+
+#: The proximal solve's shift, a fraction of W's mean diagonal, and its most rounds
+#: (solve_proximal). Measured on the reduced block at rest on the incline (7 contacts, 21
+#: rows through 18 DOFs: W has 3 null directions and its least other eigenvalue is 1e-3 of
+#: its mean diagonal): at 1e-9 (the fixed shift this replaces) Newton stalls at |F| of
+#: 5e-7 of the forces, the shift's 1e9 amplification of round-off in the null directions
+#: against contacts within 1e-8 of the cone's rim; at 1e-6 each solve ends at round-off
+#: and a warm-started solve needs one round (180 of 183 on that block; 197 of 206 on the
+#: caterpillar at rest with mu 0.5, and over its timeline 175 of 216, at most 5); at 1e-4
+#: 20 rounds did not end the block's resting solves (each takes about 1e-4 / 1e-3 of the
+#: error on that eigenvalue away).
+PROXIMAL_SHIFT = 1e-6
+PROXIMAL_ROUNDS = 10
+
+
+def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_ROUNDS):
+    """solve_coulomb for W symmetric positive semi-definite with dependent rows (a reduced
+    body: more contact rows than the modes can move apart, so W is singular and its
+    forces not unique), by proximal-point iterations (Rockafellar 1976): round k solves
+    the Coulomb problem of the shifted W + eps I centred on the last answer,
+
+        w = (W + eps I) lambda + g - eps lambda_k        (eps = shift x mean diag W)
+
+    whose w is the true gap and slip W lambda + g less eps (lambda - lambda_k). Each
+    round's problem is well conditioned, and at a fixed point lambda = lambda_k it is the
+    unshifted law exactly. A fixed shift instead (solve_coulomb on W + eps I) leaves
+    w = -eps lambda: every pressed contact sinks eps lambda_n into its collider, and where
+    eps is small enough for that to be negligible its amplification of round-off (1 /
+    eps along W's null directions) stalls Newton above the law's tolerance.
+
+    The first round is centred on lam0 (a warm start: the last step's forces), else on
+    zero (the least-norm split, as the fixed shift picks). The rounds end when a round
+    moves w by at most tol x the rows' scale (max |g|): then the answer's w is within
+    that of the true one, which the round solved to round-off. They also end, keeping the
+    last answer, when a round moves w by more than half the round before (what is left
+    changes along W's null directions, where no force moves anything: rows the body
+    cannot all meet exactly), when a round is unconverged, and after `rounds`. W that is
+    not positive semi-definite (an indefinite step matrix, _positive) gets one solve of
+    the lifted W: its unshifted problem may have no bounded answer. Returns solve_coulomb's
+    (lambda, info) with info["proximal_rounds"]."""
+    m = len(g) // 3
+    diag = max(float(np.mean(np.diag(W))), 1e-300)
+    eps = (PROXIMAL_SHIFT if shift is None else shift) * diag
+    Ws, lifted = _positive(W, eps)
+    if lifted:
+        lam, info = solve_coulomb(Ws, g, mu, lam0=lam0, tol=tol)
+        return lam, dict(info, proximal_rounds=1)
+    centre = np.zeros((m, 3)) if lam0 is None else np.asarray(lam0, dtype=np.float64).reshape(m, 3)
+    scale = max(float(np.abs(g).max(initial=0.0)), 1e-300)
+    last_move = np.inf
+    for k in range(1, rounds + 1):
+        lam, info = solve_coulomb(Ws, g - eps * centre.ravel(), mu, lam0=lam0 if k == 1 else centre, tol=tol)
+        move = eps * float(np.abs(lam - centre).max(initial=0.0))
+        centre = lam
+        if info["unconverged"] or move <= tol * scale or move > 0.5 * last_move:
+            break
+        last_move = move
+    return lam, dict(info, proximal_rounds=k)
 
 
 def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_rounds=50, hint=None,
@@ -526,7 +586,9 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     violates join it, until none does. A contact left out has lambda = 0 and a positive
     gap, so the answer is that of all rows.
 
-    mu (m,) (effective_mu); hint (m,) bool; lam_guess (m, 3) a first guess (the last
+    mu (m,) (effective_mu); regularize > 0: the rows may be dependent (a reduced body), so
+    the problem is solved by solve_proximal (the frictionless first guess, if any, by
+    solve_lcp with that diagonal shift); hint (m,) bool; lam_guess (m, 3) a first guess (the last
     Newton iteration's forces); compliance: a reduced body's residual contact compliance
     on the 3m rows (as in unilateral.contact_correction), added to W. Returns (lam (m, 3), correction (n,), info); info["w"]
     (m, 3) is each contact's gap and slip after the correction.
@@ -563,11 +625,13 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     if compliance is not None:
         Wd = Wd + compliance.block(r, r)
     Wd = 0.5 * (Wd + Wd.T)
-    shift = regularize * max(float(np.mean(np.diag(Wd))), 1e-300) if regularize > 0.0 else 0.0
     guess = None if lam_guess is None else lam_guess[work]
     info = {}
     for rounds in range(1, max_rounds + 1):
-        lam_w, info = solve_coulomb(_positive(Wd, shift), g[r], mu[work], lam0=guess, tol=tol)
+        if regularize > 0.0:
+            lam_w, info = solve_proximal(Wd, g[r], mu[work], lam0=guess, tol=tol)
+        else:
+            lam_w, info = solve_coulomb(_positive(Wd, 0.0)[0], g[r], mu[work], lam0=guess, tol=tol)
         corr = Y @ lam_w.ravel()
         w_all = C @ corr + g
         if compliance is not None:
