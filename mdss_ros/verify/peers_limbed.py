@@ -793,7 +793,7 @@ AUTO_ROW = ("automatic domains, cut where the loads bend", {"model.domains": {"a
 # more cuts: worse). Two changes to the automatic row, measured there:
 # - samples to an error target: each domain stops adding samples at 0.5 % training force
 #   error (150 the cap), 20 samples per interface (was 60 of about 77 elements). The arms'
-#   12 modes take 38-54 samples instead of ~130, the core's 30 the cap: 1.98 -> 1.27 ms a
+#   12 modes take 38-54 samples instead of ~130, the core's 30 the cap: 1.73 -> 1.24 ms a
 #   step at 3.26 -> 3.20 %. Not the scene's default: its per-limb model, whose arm0 domain
 #   turns 130 degrees alone (beyond the training poses), goes 4.00 -> 4.30 % with the
 #   target and 4.36 % with 20 interface samples;
