@@ -160,3 +160,20 @@ def test_a_body_without_limbs_is_cut_from_its_root_where_the_loads_bend_it():
     spans = [float(a) for a in note.split("bending ")[1].split(" deg")[0].split(", ")]
     whole = float(note.split("bend it ")[1].split(" deg")[0])
     assert len(spans) == int(np.ceil(whole / 30)) == 3 and max(spans) <= 30, note
+
+
+def test_a_free_block_that_the_loads_move_whole_is_one_domain_without_warnings():
+    # Issue 18's incline block: free, under gravity only. Its training pose moves it as a
+    # whole, so every tet is its calmest part and the distance along it is zero everywhere
+    # (a 0 / 0 band width gave NaN bands and numpy warnings before).
+    import warnings
+    scene = load_scene({"name": "block", "body": {
+        "mesh": {"generator": "box", "size": [0.10, 0.08, 0.04], "cell": 0.02},
+        "material": {"model": "neohookean", "young": 2e5, "poisson": 0.3, "density": 1000}},
+        "colliders": {"floor": {"shape": "plane"}}, "gravity": [3.36, 0.0, -9.22],
+        "model": {"kind": "reduced", "domains": "auto"}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, labels, names, notes = _partition(scene)
+    assert names == ["core"] and np.all(labels == 0)
+    assert any(n.startswith("no limbs;") and "bend it 0 deg" in n for n in notes), notes

@@ -195,6 +195,10 @@ def limb_cuts(rot, volume, tets, s, members, width, min_length, max_bend, first_
     in_limb = inside[tets].all(axis=1)
     s_tet = np.where(in_limb, s[tets].mean(axis=1), 0.0)
     reach = float(s[members].max())
+    if not reach > 0.0:
+        # Every vertex is a root vertex (a free body that the poses move or turn as a whole:
+        # _bend_body's calmest part is all of it): no length to cut along, and nothing bends.
+        return np.zeros(0), np.zeros(1), 0.0
     edges, bend = limb_bend_profile(rot, volume, s_tet, in_limb, width, reach)
     min_bands = max(1, int(np.ceil(min_length / max(reach / len(edges), 1e-300))))
     cuts, spans = greedy_cuts(bend, first_bend, max_bend, min_bands)
