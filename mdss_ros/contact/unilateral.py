@@ -17,6 +17,7 @@ method, so the answer is the unilateral constraint itself, not a penalty whose r
 depends on a tuned stiffness.
 """
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 from scipy.linalg.lapack import dposv
 
@@ -169,9 +170,12 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         return lam, np.zeros(n), {"rows": m, "working_set": 0, "rounds": 0, "active": 0}
     hint = None if hint is None or not np.any(hint) else np.asarray(hint, dtype=bool)
     work = np.flatnonzero(violated if hint is None else hint)
-    dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
-    Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(work)))).reshape(n, -1)
-    S = np.asarray(C[work] @ Y)
+    # C[idx]: an ndarray's rows, sparse rows, or the dense rows of a
+    # reduced/sparse_rows.ContactRowEntries (built once per index set here).
+    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C) else (lambda rows: rows.T)
+    C_work = C[work]
+    Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_work)))).reshape(n, -1)
+    S = np.asarray(C_work @ Y)
     if compliance is not None:
         S = S + compliance.block(work, work)
     shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
@@ -189,15 +193,17 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         if viol.size == 0:
             break
         # Rows the corrected step violates join: their solves and S's new rows and columns.
-        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(viol)))).reshape(n, -1)
-        S = np.block([[S, np.asarray(C[work] @ Y_new)],
-                      [np.asarray(C[viol] @ Y), np.asarray(C[viol] @ Y_new)]])
+        C_viol = C[viol]
+        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_viol)))).reshape(n, -1)
+        S = np.block([[S, np.asarray(C_work @ Y_new)],
+                      [np.asarray(C_viol @ Y), np.asarray(C_viol @ Y_new)]])
         if compliance is not None:
             both = np.concatenate([work, viol])
             S[:, work.size:] += compliance.block(both, viol)
             S[work.size:, :work.size] += compliance.block(viol, work)
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
+        C_work = C[work]
         guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
