@@ -122,7 +122,7 @@ class ContactRowEntries:
         """The rows of reconstruct.contact_rows_kernel (same arguments): m contacts, n
         columns (n_gen)."""
         k, r = dirs.shape[:2]
-        corners = np.bincount(row_of, minlength=m).max() if k else 0
+        corners = 1 if k == m else np.bincount(row_of, minlength=m).max()     # corner rows per contact
         w = max(int(corners) * (layout.U.shape[2] + 6), 1)
         cols = np.zeros((m * r, w), dtype=np.int64)
         vals = np.zeros((m * r, w))
