@@ -77,7 +77,9 @@ class ContactRows:
         verts = ids[rows]
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
-        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        # Without faces every row is a contact of its own (the corner gathers below are skipped).
+        one_corner = len(rows) == len(phi)                  # a face adds three rows and one phi
+        starts = group if one_corner else np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         tangents = None
         if not rough:
             dirs = normals[:, None, :] * weights[:, None, None]
@@ -98,9 +100,11 @@ class ContactRows:
         # np.linalg.norm does (a third faster on the caterpillar's 800 floor rows).
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else C.norms() if isinstance(C, ContactRowEntries) else np.sqrt(np.einsum("ij,ij->i", C, C)))
-        verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
-        at = rows[starts]                                                       # their rows of ids
-        tangents = None if tangents is None else tangents[starts]
+        at = rows                                                               # their rows of ids
+        if not one_corner:
+            verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
+            at = rows[starts]
+            tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
         movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
