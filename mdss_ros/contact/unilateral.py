@@ -393,6 +393,21 @@ def segment_triangle_closest(a, b, tri):
 # of hammock's contact search (0.375 ms for the longest edge alone, numpy temporaries of
 # (T, 3) per edge). Compiled, each is one pass without temporaries.
 @njit(cache=True)
+def bounding_box(positions):
+    """(lo (3,), hi (3,)) of positions (n, 3), n > 0."""
+    lo = positions[0].copy()
+    hi = positions[0].copy()
+    for i in range(1, positions.shape[0]):
+        for c in range(3):
+            v = positions[i, c]
+            if v < lo[c]:
+                lo[c] = v
+            if v > hi[c]:
+                hi[c] = v
+    return lo, hi
+
+
+@njit(cache=True)
 def longest_edge_squared(positions, triangles):
     """max over triangles (T, 3) of their squared edge lengths, positions (n, 3)."""
     best = 0.0
@@ -527,7 +542,7 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     out = [], [], [], [], []
     round_ = [(c_idx, col) for c_idx, col in enumerate(colliders)
               if col.shape in ("sphere", "capsule") and getattr(col, "face_contacts", True)]
-    if not round_:
+    if not round_ or len(positions) == 0 or len(triangles) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
     # Cull by vertices first (the surface has half as many vertices as triangles): a point
     # of a triangle lies within its longest edge of each corner, so a triangle whose
@@ -535,9 +550,21 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     # collider cannot touch it.
     positions = np.ascontiguousarray(positions, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    longest = np.sqrt(longest_edge_squared(positions, triangles))
+    # A triangle's points lie in the surface's bounding box, and a point within reach of
+    # the axis in the axis' box grown by reach: where the two boxes are apart, no face is
+    # a contact (hammock's weight before it arrives: the two culling passes below are
+    # skipped). The slack keeps the test conservative against round-off.
+    lo, hi = bounding_box(positions)
+    axes = []
     for c_idx, col in round_:
         a, b = _axis(col)
+        reach = (col.radius + margin) * (1.0 + 1e-6) + 1e-12
+        if np.all(np.minimum(a, b) - reach <= hi) and np.all(np.maximum(a, b) + reach >= lo):
+            axes.append((c_idx, col, a, b))
+    if not axes:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    longest = np.sqrt(longest_edge_squared(positions, triangles))
+    for c_idx, col, a, b in axes:
         near = triangles_near_segment(positions, triangles, a, b, col.radius + margin + longest)
         if near.size == 0:
             continue
