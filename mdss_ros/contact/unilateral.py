@@ -230,6 +230,8 @@ def find_contacts(colliders, x, x_pred, margin):
         normals.append(n_now)
     if not rows:
         return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    if len(rows) == 1:                   # one collider near (the usual case): no copies
+        return rows[0], which[0], phis[0], normals[0]
     return np.concatenate(rows), np.concatenate(which), np.concatenate(phis), np.concatenate(normals)
 
 
