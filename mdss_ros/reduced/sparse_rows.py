@@ -155,8 +155,11 @@ class ContactRowEntries:
         return out
 
     def __getitem__(self, idx):
-        """Dense rows (len(idx), n) of integer indices idx."""
-        idx = np.ascontiguousarray(np.atleast_1d(idx), dtype=np.int64)
+        """Dense rows (len(idx), n) of integer indices idx (or a boolean mask over the rows)."""
+        idx = np.atleast_1d(np.asarray(idx))
+        if idx.dtype == bool:
+            idx = np.flatnonzero(idx)
+        idx = np.ascontiguousarray(idx, dtype=np.int64)
         out = np.zeros((len(idx), self.n))
         _dense(self.cols, self.vals, self.count, idx, out)
         return out
