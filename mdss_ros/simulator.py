@@ -196,12 +196,21 @@ class Simulator:
         step) whose start pose is inside the body: a surface vertex deeper than inside_depth
         in it, or its centre inside the surface. They are not swept (docs/method.md §14)."""
         from .contact.colliders import inside_body
-        out, surface = [], None
+        out, surface, box = [], None, None
         for name, c in self.colliders.items():
             p0, q0 = self._collider_start.get(name, (c.position, c.orientation))
             if float(np.linalg.norm(c.position - p0)) <= self.inside_depth:
                 continue
             surface = self.surface_positions() if surface is None else surface
+            if c.shape == "sphere":
+                # A sphere whose bounding box misses the surface's has no surface vertex
+                # inside it, and its centre, outside the closed surface's box, has winding
+                # number 0: not embedded, without the winding number's pass over every
+                # surface triangle (hammock's lowered weight: about 3 ms a move).
+                box = (surface.min(0), surface.max(0)) if box is None else box
+                p = np.asarray(p0, dtype=np.float64)
+                if np.any(p + c.radius < box[0]) or np.any(p - c.radius > box[1]):
+                    continue
             start = c.at(p0, q0)
             if start.penetration(surface, self.inside_depth)[1] or \
                     inside_body(start, surface, self.body.surface.triangles):

@@ -151,8 +151,9 @@ class Collider:
         elif self.shape == "box":
             phi, n = _box(p, self.half_extents)
         elif self.shape == "plane":
-            phi = p[:, 2].copy()
-            n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+            # The normal is the local z axis, R's last column: what the tiled (0, 0, 1) @ R^T
+            # gave, without the product (0 R_i0 + 0 R_i1 + 1 R_i2 is R_i2 exactly).
+            return p[:, 2].copy(), np.tile(R[:, 2], (len(p), 1))
         elif self.shape == "mesh":
             phi, n = self.sdf.evaluate(p)
         else:                                                              # validated on creation

@@ -17,6 +17,7 @@ method, so the answer is the unilateral constraint itself, not a penalty whose r
 depends on a tuned stiffness.
 """
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 from scipy.linalg.lapack import dposv
 
@@ -169,9 +170,12 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         return lam, np.zeros(n), {"rows": m, "working_set": 0, "rounds": 0, "active": 0}
     hint = None if hint is None or not np.any(hint) else np.asarray(hint, dtype=bool)
     work = np.flatnonzero(violated if hint is None else hint)
-    dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
-    Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(work)))).reshape(n, -1)
-    S = np.asarray(C[work] @ Y)
+    # C[idx]: an ndarray's rows, sparse rows, or the dense rows of a
+    # reduced/sparse_rows.ContactRowEntries (built once per index set here).
+    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C) else (lambda rows: rows.T)
+    C_work = C[work]
+    Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_work)))).reshape(n, -1)
+    S = np.asarray(C_work @ Y)
     if compliance is not None:
         S = S + compliance.block(work, work)
     shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
@@ -189,15 +193,17 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
         if viol.size == 0:
             break
         # Rows the corrected step violates join: their solves and S's new rows and columns.
-        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(viol)))).reshape(n, -1)
-        S = np.block([[S, np.asarray(C[work] @ Y_new)],
-                      [np.asarray(C[viol] @ Y), np.asarray(C[viol] @ Y_new)]])
+        C_viol = C[viol]
+        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_viol)))).reshape(n, -1)
+        S = np.block([[S, np.asarray(C_work @ Y_new)],
+                      [np.asarray(C_viol @ Y), np.asarray(C_viol @ Y_new)]])
         if compliance is not None:
             both = np.concatenate([work, viol])
             S[:, work.size:] += compliance.block(both, viol)
             S[work.size:, :work.size] += compliance.block(viol, work)
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
+        C_work = C[work]
         guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
@@ -224,6 +230,8 @@ def find_contacts(colliders, x, x_pred, margin):
         normals.append(n_now)
     if not rows:
         return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    if len(rows) == 1:                   # one collider near (the usual case): no copies
+        return rows[0], which[0], phis[0], normals[0]
     return np.concatenate(rows), np.concatenate(which), np.concatenate(phis), np.concatenate(normals)
 
 
@@ -387,6 +395,21 @@ def segment_triangle_closest(a, b, tri):
 # of hammock's contact search (0.375 ms for the longest edge alone, numpy temporaries of
 # (T, 3) per edge). Compiled, each is one pass without temporaries.
 @njit(cache=True)
+def bounding_box(positions):
+    """(lo (3,), hi (3,)) of positions (n, 3), n > 0."""
+    lo = positions[0].copy()
+    hi = positions[0].copy()
+    for i in range(1, positions.shape[0]):
+        for c in range(3):
+            v = positions[i, c]
+            if v < lo[c]:
+                lo[c] = v
+            if v > hi[c]:
+                hi[c] = v
+    return lo, hi
+
+
+@njit(cache=True)
 def longest_edge_squared(positions, triangles):
     """max over triangles (T, 3) of their squared edge lengths, positions (n, 3)."""
     best = 0.0
@@ -521,7 +544,7 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     out = [], [], [], [], []
     round_ = [(c_idx, col) for c_idx, col in enumerate(colliders)
               if col.shape in ("sphere", "capsule") and getattr(col, "face_contacts", True)]
-    if not round_:
+    if not round_ or len(positions) == 0 or len(triangles) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
     # Cull by vertices first (the surface has half as many vertices as triangles): a point
     # of a triangle lies within its longest edge of each corner, so a triangle whose
@@ -529,9 +552,21 @@ def find_triangle_contacts(colliders, positions, triangles, margin, corner=1e-3)
     # collider cannot touch it.
     positions = np.ascontiguousarray(positions, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    longest = np.sqrt(longest_edge_squared(positions, triangles))
+    # A triangle's points lie in the surface's bounding box, and a point within reach of
+    # the axis in the axis' box grown by reach: where the two boxes are apart, no face is
+    # a contact (hammock's weight before it arrives: the two culling passes below are
+    # skipped). The slack keeps the test conservative against round-off.
+    lo, hi = bounding_box(positions)
+    axes = []
     for c_idx, col in round_:
         a, b = _axis(col)
+        reach = (col.radius + margin) * (1.0 + 1e-6) + 1e-12
+        if np.all(np.minimum(a, b) - reach <= hi) and np.all(np.maximum(a, b) + reach >= lo):
+            axes.append((c_idx, col, a, b))
+    if not axes:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    longest = np.sqrt(longest_edge_squared(positions, triangles))
+    for c_idx, col, a, b in axes:
         near = triangles_near_segment(positions, triangles, a, b, col.radius + margin + longest)
         if near.size == 0:
             continue

@@ -18,6 +18,7 @@ import scipy.sparse as sp
 from ..rotations import cross
 from . import reconstruct
 from .residual_compliance import limit_dent
+from .sparse_rows import ContactRowEntries
 
 
 def _kept_solves(resolve):
@@ -31,6 +32,17 @@ def _kept_solves(resolve):
             kept[key] = resolve(B)
         return kept[key]
     return solve
+
+
+def _member(keys, among):
+    """np.isin(keys, among) for non-negative integer keys, through a table over the keys'
+    range: np.isin sorted both (the candidates' keys span about 10 times their count, too
+    wide for its own table), about 0.2 ms of a loaded caterpillar step."""
+    if len(keys) == 0 or len(among) == 0:
+        return np.zeros(len(keys), dtype=bool)
+    table = np.zeros(int(max(keys.max(), among.max())) + 1, dtype=bool)
+    table[among] = True
+    return table[keys]
 
 
 class ContactRows:
@@ -76,11 +88,13 @@ class ContactRows:
         verts = ids[rows]
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
-        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        # Without faces every row is a contact of its own (the corner gathers below are skipped).
+        one_corner = len(rows) == len(phi)                  # a face adds three rows and one phi
+        starts = group if one_corner else np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
         tangents = None
         if not rough:
             dirs = normals[:, None, :] * weights[:, None, None]
-            C = self._rows_along(dirs, verts, xv, starts, dt)
+            C = self._rows_along(dirs, verts, xv, starts, dt, entries=True)
         else:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
@@ -96,16 +110,18 @@ class ContactRows:
         # Only compared with a threshold below: einsum needs no (m, n_gen) temporary as
         # np.linalg.norm does (a third faster on the caterpillar's 800 floor rows).
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
-                 else np.sqrt(np.einsum("ij,ij->i", C, C)))
-        verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
-        at = rows[starts]                                                       # their rows of ids
-        tangents = None if tangents is None else tangents[starts]
+                 else C.norms() if isinstance(C, ContactRowEntries) else np.sqrt(np.einsum("ij,ij->i", C, C)))
+        at = rows                                                               # their rows of ids
+        if not one_corner:
+            verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
+            at = rows[starts]
+            tangents = None if tangents is None else tangents[starts]
         # Vertices that cannot move (pins: zero rows of U in a fixed domain) cannot be
         # pushed out; their constraints would be infeasible, so they are not contacts.
         movable = norms > 1e-12 * max(float(norms.max()), 1e-300)
         if not movable.all():
-            verts, C, phi, normals, which, xv = (verts[movable], C[movable], phi[movable], normals[movable],
-                                                 which[movable], xv[movable])
+            verts, phi, normals, which, xv = verts[movable], phi[movable], normals[movable], which[movable], xv[movable]
+            C = C.take(np.flatnonzero(movable)) if isinstance(C, ContactRowEntries) else C[movable]
             key, at = key[movable], at[movable]
             if tangents is not None:
                 tangents = tangents[movable]
@@ -154,16 +170,22 @@ class ContactRows:
             fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
         return verts, C, phi_eff, normals, which, fric
 
-    def _rows_along(self, dirs, verts, xv, starts, dt):
+    def _rows_along(self, dirs, verts, xv, starts, dt, entries=False):
         """Constraint rows (m r, n_gen), row l r + j = dt d^T J at contact l along its j-th
         direction: dirs (k, r, 3) per corner row (weighted: a face point's corners carry
         their barycentric weights), verts (k,) vertex ids, xv (k, 3) their positions, starts
         (m,) the first corner row of each contact (corner rows of a contact are adjacent).
-        Dense, or CSR when the model has full-space domains (n_gen large, rows sparse)."""
+        Dense, or CSR when the model has full-space domains (n_gen large, rows sparse);
+        entries=True: without full-space domains, as sparse_rows.ContactRowEntries (each
+        row's 26 or so entries instead of n_gen columns; the frictionless solve reads them)."""
         L = self.layout
         k, r = dirs.shape[:2]
         vrow = L.vertex_row[verts]
         m = len(starts)
+        if not self.F and entries:
+            row_of = np.arange(k) if m == k else np.searchsorted(starts, np.arange(k), side="right") - 1
+            return ContactRowEntries.build(dirs, vrow, L, self.frames.R, self.frames.c, xv, self._frame_cols,
+                                           row_of, m, dt, self.n_gen)
         if not self.F:
             # Every vertex is in a subspace domain: one compiled pass (reconstruct.py).
             row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
@@ -232,7 +254,7 @@ class ContactRows:
         if same_step:
             hint = lam_n > 0
         else:
-            hint = np.isin(keys, np.concatenate(history)) if history else None
+            hint = _member(keys, np.concatenate(history)) if history else None
         # limit_dent solves the same contact again under a smaller compliance, and its rounds
         # ask the step's matrix for the same rows' solutions: they are kept for the step.
         resolve = self._resolve if self._contact_compliance is None else _kept_solves(self._resolve)
@@ -265,4 +287,7 @@ class ContactRows:
     @staticmethod
     def _contact_force(rows, lam):
         """C^T lam (n_gen,): the contact forces as generalised forces, frictional or not."""
-        return rows[1].T @ lam if rows[5] is None else rows[5][0].T @ lam.ravel()
+        if rows[5] is not None:
+            return rows[5][0].T @ lam.ravel()
+        C = rows[1]
+        return C.rmatvec(lam) if isinstance(C, ContactRowEntries) else C.T @ lam

@@ -67,7 +67,7 @@ class Step:
         t0 = time.perf_counter()
         dt = terms.dt
         # Body-frame inertia (D, 3, 3) at the step start, for the mass blocks and the prediction.
-        inertia = self.layout.inertia(self.q) if len(self.layout.movers) else None
+        inertia = self._inertia_of(self.q) if len(self.layout.movers) else None
         gm = self._global_motion(inertia)
         if gm is not None:
             C, V, W, L = gm
@@ -318,7 +318,7 @@ class Step:
         # inertia at the predicted rotation; re-express that momentum with the inertia the
         # domain really has after the step, so torque-free domains keep h exactly.
         mv = L.movers
-        inertia = L.inertia(q) if len(mv) else None       # a pinned body's frames do not turn
+        inertia = self._inertia_of(q) if len(mv) else None       # a pinned body's frames do not turn
         if len(mv):
             Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
             h = np.einsum("dij,dj->di", Rp @ inertia0[mv] @ Rp.transpose(0, 2, 1),
@@ -340,6 +340,20 @@ class Step:
                 v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
         frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
+
+    #: (q copy, layout.inertia(q)) of the last _inertia_of call.
+    _inertia_kept = None
+
+    def _inertia_of(self, q):
+        """layout.inertia(q), kept for the last q (compared by value): a step's prediction
+        computes the inertia at the state the next step starts from, which read it again."""
+        kept = self._inertia_kept
+        if kept is not None and np.array_equal(kept[0], q):
+            return kept[1]
+        inertia = self.layout.inertia(q)
+        inertia.flags.writeable = False
+        self._inertia_kept = (q.copy(), inertia)
+        return inertia
 
     def _energy_at(self, Q, base, dt):
         q, _, frames, x_full, _ = self._predict(Q, base, dt)

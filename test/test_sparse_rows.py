@@ -1,0 +1,80 @@
+"""Contact rows held as their entries (reduced/sparse_rows.py) against the dense kernel
+they replace in the frictionless solve (reconstruct.contact_rows_kernel)."""
+from types import SimpleNamespace
+
+import numpy as np
+
+from mdss_ros.reduced import reconstruct
+from mdss_ros.reduced.sparse_rows import ContactRowEntries
+
+
+def _layout_and_rows(seed=0, k=200, contacts=80):
+    """A made-up layout of three domains (mode counts 5, 3, 4 padded to 5; domain 1 fixed,
+    no frame columns) and k corner rows in `contacts` contacts (several corners per
+    contact, often in one domain, as a face's corners)."""
+    rng = np.random.default_rng(seed)
+    D, r_max, n_rows = 3, 5, 40
+    r = np.array([5, 3, 4])
+    mask = np.arange(r_max)[None, :] < r[:, None]
+    q_index = np.full((D, r_max), -1, dtype=np.int64)
+    frame_cols = np.full((D, 6), -1, dtype=np.int64)
+    col = 0
+    for d in range(D):
+        q_index[d, :r[d]] = col + np.arange(r[d])
+        col += r[d]
+        if d != 1:
+            frame_cols[d] = col + np.arange(6)
+            col += 6
+    layout = SimpleNamespace(U=rng.normal(size=(n_rows, 3, r_max)) * np.repeat(mask, [14, 13, 13], axis=0)[:, None, :],
+                             row_domain=np.repeat(np.arange(D), [14, 13, 13]).astype(np.int64),
+                             q_index=q_index, mask=mask)
+    group = np.sort(rng.integers(0, contacts, k))
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    row_of = (np.searchsorted(starts, np.arange(k), side="right") - 1).astype(np.int64)
+    vrow = rng.integers(0, n_rows, k).astype(np.int64)
+    R = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(D)])
+    c = rng.normal(size=(D, 3))
+    return layout, frame_cols, col, R, c, vrow, row_of, len(starts), rng
+
+
+def test_entries_give_the_dense_rows_and_their_products():
+    layout, frame_cols, n, R, c, vrow, row_of, m, rng = _layout_and_rows()
+    for r in (1, 3):
+        dirs = rng.normal(size=(len(vrow), r, 3))
+        xv = rng.normal(size=(len(vrow), 3))
+        dense = np.zeros((m * r, n))
+        reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+                                        layout.mask, frame_cols, row_of, 0.01, dense)
+        C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, m, 0.01, n)
+        assert C.shape == dense.shape
+        # Dense rows: the same values added in the same order, bit for bit.
+        assert np.array_equal(C[np.arange(m * r)], dense)
+        idx = rng.permutation(m * r)[:17]
+        assert np.array_equal(C[idx], dense[idx])
+        assert np.array_equal(C[np.arange(m * r) % 2 == 0], dense[::2])
+        sub = C.take(idx)
+        assert np.array_equal(sub[np.arange(len(idx))], dense[idx])
+        # Products and norms: to round-off (a row's entries are summed in another order).
+        x = rng.normal(size=n)
+        lam = np.abs(rng.normal(size=m * r))
+        lam[::4] = 0.0
+        scale = np.abs(dense).max()
+        assert np.allclose(C @ x, dense @ x, rtol=0, atol=1e-14 * scale * np.abs(x).sum())
+        assert np.allclose(C.rmatvec(lam), dense.T @ lam, rtol=0, atol=1e-14 * scale * lam.sum())
+        assert np.allclose(C.norms(), np.linalg.norm(dense, axis=1), rtol=1e-14, atol=1e-300)
+        X = rng.normal(size=(n, 4))
+        assert np.allclose(C @ X, dense @ X, rtol=0, atol=1e-14 * scale * np.abs(X).sum())
+
+
+def test_a_vertex_per_contact():
+    layout, frame_cols, n, R, c, vrow, _, _, rng = _layout_and_rows(seed=3)
+    k = len(vrow)
+    row_of = np.arange(k, dtype=np.int64)
+    dirs = rng.normal(size=(k, 1, 3))
+    xv = rng.normal(size=(k, 3))
+    dense = np.zeros((k, n))
+    reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+                                    layout.mask, frame_cols, row_of, 0.02, dense)
+    C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, k, 0.02, n)
+    assert C.cols.shape[1] == layout.U.shape[2] + 6          # one corner's columns a row
+    assert np.array_equal(C[np.arange(k)], dense)
