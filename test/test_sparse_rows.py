@@ -78,3 +78,31 @@ def test_a_vertex_per_contact():
     C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, k, 0.02, n)
     assert C.cols.shape[1] == layout.U.shape[2] + 6          # one corner's columns a row
     assert np.array_equal(C[np.arange(k)], dense)
+
+
+def test_frictional_correction_reads_entries_as_the_dense_rows():
+    """friction.frictional_correction on a reduced body's frictional rows (n, t1, t2 per
+    contact) held as entries: the same forces and correction as on the dense rows, to
+    round-off, also when contacts join the working set in later rounds."""
+    from mdss_ros.contact.friction import frictional_correction
+    layout, frame_cols, n, R, c, vrow, row_of, m, rng = _layout_and_rows(seed=5, k=60, contacts=30)
+    dirs = rng.normal(size=(len(vrow), 3, 3))
+    xv = rng.normal(size=(len(vrow), 3))
+    dense = np.zeros((3 * m, n))
+    reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+                                    layout.mask, frame_cols, row_of, 0.01, dense)
+    C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, m, 0.01, n)
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    solve = lambda rhs: np.linalg.solve(A, rhs)                       # noqa: E731
+    g = rng.normal(size=3 * m) * 0.01
+    mu = np.full(m, 0.5)
+    hint = np.zeros(m, dtype=bool)
+    hint[:3] = True                                  # a small first working set: later rounds add rows
+    lam_d, corr_d, info_d = frictional_correction(solve, dense, g, mu, regularize=1e-9, hint=hint)
+    lam_e, corr_e, info_e = frictional_correction(solve, C, g, mu, regularize=1e-9, hint=hint)
+    assert info_d["rounds"] > 1 and info_e["rounds"] == info_d["rounds"]
+    assert info_d["working_set"] == info_e["working_set"] > 3
+    scale = np.abs(lam_d).max()
+    assert scale > 0 and np.allclose(lam_e, lam_d, rtol=0, atol=1e-12 * scale)     # measured: equal
+    assert np.allclose(corr_e, corr_d, rtol=0, atol=1e-12 * np.abs(corr_d).max())

@@ -46,6 +46,7 @@ rest cannot hold: a block at 40 degrees with mu_s 0.9 and mu_k 0.5 slid off its 
 """
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sp
 from numba import njit
 
 from .unilateral import contact_correction, solve_lcp
@@ -608,20 +609,23 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         # No guess: the frictionless answer's contacts. Far fewer than the rows the free
         # step violates when a collider first meets a reduced body (9 of 121 for a pad on
         # a 30-mode block), whose rows are then strongly dependent and slow Newton down.
-        lam_n, _, _ = contact_correction(resolve, C[0::3], gn, regularize=regularize, tol=tol,
+        lam_n, _, _ = contact_correction(resolve, _normal_rows(C), gn, regularize=regularize, tol=tol,
                                          compliance=None if compliance is None else compliance.normal())
         hint = lam_n > 0
         lam_guess = np.zeros((m, 3))
         lam_guess[:, 0] = lam_n
     work = np.flatnonzero(violated if not np.any(hint) else hint)
-    dense_rows = (lambda idx: C[idx].T) if isinstance(C, np.ndarray) else (lambda idx: C[idx].T.toarray())
+    # C[idx]: an ndarray's rows, sparse rows, or the dense rows of a reduced body's
+    # sparse_rows.ContactRowEntries (built once per index set here).
+    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C) else (lambda rows: rows.T)
 
     def rows_of(contacts):
         return (3 * contacts[:, None] + np.arange(3)).ravel()
 
     r = rows_of(work)
-    Y = np.asarray(resolve(np.ascontiguousarray(dense_rows(r)))).reshape(n, -1)
-    Wd = np.asarray(C[r] @ Y)
+    C_r = C[r]
+    Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_r)))).reshape(n, -1)
+    Wd = np.asarray(C_r @ Y)
     if compliance is not None:
         Wd = Wd + compliance.block(r, r)
     Wd = 0.5 * (Wd + Wd.T)
@@ -643,8 +647,9 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         if viol.size == 0:
             break
         r_new = rows_of(viol)
-        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_rows(r_new)))).reshape(n, -1)
-        Wd = np.block([[Wd, np.asarray(C[r] @ Y_new)], [np.asarray(C[r_new] @ Y), np.asarray(C[r_new] @ Y_new)]])
+        C_new = C[r_new]
+        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_new)))).reshape(n, -1)
+        Wd = np.block([[Wd, np.asarray(C_r @ Y_new)], [np.asarray(C_new @ Y), np.asarray(C_new @ Y_new)]])
         if compliance is not None:
             both = np.concatenate([r, r_new])
             Wd[:, r.size:] += compliance.block(both, r_new)
@@ -653,6 +658,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
         r = np.concatenate([r, r_new])
+        C_r = sp.vstack([C_r, C_new]).tocsr() if sp.issparse(C_r) else np.vstack([C_r, C_new])
         guess = np.vstack([lam_w, np.zeros((viol.size, 3))])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
@@ -660,6 +666,14 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
                        "active": int((lam[:, 0] > 0).sum()), "stick": int(info["stick"].sum()),
                        "slip": int(info["slip"].sum()), "newton": info["iterations"],
                        "unconverged": bool(viol.size) or info.get("unconverged", False)}
+
+
+def _normal_rows(C):
+    """The normal rows C[0::3] of frictional rows C (3m, n): an ndarray's or a sparse
+    matrix's slice, or the take() of a reduced body's sparse_rows.ContactRowEntries."""
+    if isinstance(C, np.ndarray) or sp.issparse(C):
+        return C[0::3]
+    return C.take(np.arange(0, C.shape[0], 3))
 
 
 #: Slip speed (m/s) in the last step above which a contact counts as sliding (kinetic

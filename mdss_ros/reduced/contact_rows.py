@@ -99,8 +99,9 @@ class ContactRows:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
             dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
-            C3 = self._rows_along(dirs, verts, xv, starts, dt)
-            C = C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3])
+            C3 = self._rows_along(dirs, verts, xv, starts, dt, entries=True)
+            C = (C3.take(np.arange(0, len(C3), 3)) if isinstance(C3, ContactRowEntries)
+                 else C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3]))
         # The residual compliance's rows (residual_compliance.py): the same directions on
         # the candidate vertices' dent, in their domains' rest axes.
         compliance = None
@@ -125,7 +126,8 @@ class ContactRows:
             key, at = key[movable], at[movable]
             if tangents is not None:
                 tangents = tangents[movable]
-                C3 = C3[(3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()]
+                keep3 = (3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()
+                C3 = C3.take(keep3) if isinstance(C3, ContactRowEntries) else C3[keep3]
             if compliance is not None:
                 r = 1 if tangents is None else 3
                 compliance = compliance.take((r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel())
@@ -288,6 +290,7 @@ class ContactRows:
     def _contact_force(rows, lam):
         """C^T lam (n_gen,): the contact forces as generalised forces, frictional or not."""
         if rows[5] is not None:
-            return rows[5][0].T @ lam.ravel()
+            C3 = rows[5][0]
+            return C3.rmatvec(lam.ravel()) if isinstance(C3, ContactRowEntries) else C3.T @ lam.ravel()
         C = rows[1]
         return C.rmatvec(lam) if isinstance(C, ContactRowEntries) else C.T @ lam
