@@ -1,11 +1,47 @@
 """Contact rows held as their entries (reduced/sparse_rows.py) against the dense kernel
-they replace in the frictionless solve (reconstruct.contact_rows_kernel)."""
+they replaced in the contact solves (contact_rows_kernel below, the product's until
+session 18, kept here as the reference)."""
 from types import SimpleNamespace
 
 import numpy as np
+from numba import njit
 
-from mdss_ros.reduced import reconstruct
 from mdss_ros.reduced.sparse_rows import ContactRowEntries
+
+
+@njit
+def contact_rows_kernel(dirs, rows, U, row_domain, R, c, xv, q_index, mask, frame_cols, row_of, dt, out):
+    """Dense contact rows: out[row_of[i] r + j] += dt d_ij^T J_i for corner rows i (k,) of
+    subspace vertices, directions dirs (k, r, 3) (weighted), so a face point's corners
+    sum into their contact's row. d^T J = (R^T d)^T U on the domain's modal columns
+    q_index (D, r_max) where mask, plus [d, (x - c) x d] on frame_cols (D, 6) of a movable
+    domain (-1 for a fixed one). rows (k,) stacked rows; xv (k, 3) positions; out
+    (m r, n_gen) zeroed. Serial: at most a few hundred corner rows, O(k r r_max)."""
+    k, r = dirs.shape[0], dirs.shape[1]
+    r_max = U.shape[2]
+    for i in range(k):
+        row = rows[i]
+        dom = row_domain[row]
+        ax = xv[i, 0] - c[dom, 0]
+        ay = xv[i, 1] - c[dom, 1]
+        az = xv[i, 2] - c[dom, 2]
+        for j in range(r):
+            d0, d1, d2 = dirs[i, j, 0], dirs[i, j, 1], dirs[i, j, 2]
+            # R^T d
+            e0 = d0 * R[dom, 0, 0] + d1 * R[dom, 1, 0] + d2 * R[dom, 2, 0]
+            e1 = d0 * R[dom, 0, 1] + d1 * R[dom, 1, 1] + d2 * R[dom, 2, 1]
+            e2 = d0 * R[dom, 0, 2] + d1 * R[dom, 1, 2] + d2 * R[dom, 2, 2]
+            o = row_of[i] * r + j
+            for b in range(r_max):
+                if mask[dom, b]:
+                    out[o, q_index[dom, b]] += dt * (e0 * U[row, 0, b] + e1 * U[row, 1, b] + e2 * U[row, 2, b])
+            if frame_cols[dom, 0] >= 0:
+                out[o, frame_cols[dom, 0]] += dt * d0
+                out[o, frame_cols[dom, 1]] += dt * d1
+                out[o, frame_cols[dom, 2]] += dt * d2
+                out[o, frame_cols[dom, 3]] += dt * (ay * d2 - az * d1)
+                out[o, frame_cols[dom, 4]] += dt * (az * d0 - ax * d2)
+                out[o, frame_cols[dom, 5]] += dt * (ax * d1 - ay * d0)
 
 
 def _layout_and_rows(seed=0, k=200, contacts=80):
@@ -43,7 +79,7 @@ def test_entries_give_the_dense_rows_and_their_products():
         dirs = rng.normal(size=(len(vrow), r, 3))
         xv = rng.normal(size=(len(vrow), 3))
         dense = np.zeros((m * r, n))
-        reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+        contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
                                         layout.mask, frame_cols, row_of, 0.01, dense)
         C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, m, 0.01, n)
         assert C.shape == dense.shape
@@ -73,7 +109,7 @@ def test_a_vertex_per_contact():
     dirs = rng.normal(size=(k, 1, 3))
     xv = rng.normal(size=(k, 3))
     dense = np.zeros((k, n))
-    reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+    contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
                                     layout.mask, frame_cols, row_of, 0.02, dense)
     C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, k, 0.02, n)
     assert C.cols.shape[1] == layout.U.shape[2] + 6          # one corner's columns a row
@@ -89,7 +125,7 @@ def test_frictional_correction_reads_entries_as_the_dense_rows():
     dirs = rng.normal(size=(len(vrow), 3, 3))
     xv = rng.normal(size=(len(vrow), 3))
     dense = np.zeros((3 * m, n))
-    reconstruct.contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
+    contact_rows_kernel(dirs, vrow, layout.U, layout.row_domain, R, c, xv, layout.q_index,
                                     layout.mask, frame_cols, row_of, 0.01, dense)
     C = ContactRowEntries.build(dirs, vrow, layout, R, c, xv, frame_cols, row_of, m, 0.01, n)
     B = rng.normal(size=(n, n))

@@ -7,16 +7,15 @@ its corners' rows weighted by barycentric coordinates):
 
 J_x = [R U_x, I3, -(x - c)x] on its domain's modal and frame columns, or I3 on a
 full-space vertex's columns. With friction each contact has three rows (n, t1, t2) and the
-Coulomb problem of contact/friction.py is solved on them. Dense rows when every vertex is
-in a subspace domain (reconstruct.contact_rows_kernel), CSR when full-space domains make
-n_gen large.
+Coulomb problem of contact/friction.py is solved on them. Each row's entries when every
+vertex is in a subspace domain (sparse_rows.ContactRowEntries), CSR when full-space
+domains make n_gen large.
 """
 
 import numpy as np
 import scipy.sparse as sp
 
 from ..rotations import cross
-from . import reconstruct
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
 
@@ -94,12 +93,12 @@ class ContactRows:
         tangents = None
         if not rough:
             dirs = normals[:, None, :] * weights[:, None, None]
-            C = self._rows_along(dirs, verts, xv, starts, dt, entries=True)
+            C = self._rows_along(dirs, verts, xv, starts, dt)
         else:
             # Rows along n, t1, t2 at once; the normal rows are every third of them.
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
             dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
-            C3 = self._rows_along(dirs, verts, xv, starts, dt, entries=True)
+            C3 = self._rows_along(dirs, verts, xv, starts, dt)
             C = (C3.take(np.arange(0, len(C3), 3)) if isinstance(C3, ContactRowEntries)
                  else C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3]))
         # The residual compliance's rows (residual_compliance.py): the same directions on
@@ -172,30 +171,21 @@ class ContactRows:
             fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
         return verts, C, phi_eff, normals, which, fric
 
-    def _rows_along(self, dirs, verts, xv, starts, dt, entries=False):
+    def _rows_along(self, dirs, verts, xv, starts, dt):
         """Constraint rows (m r, n_gen), row l r + j = dt d^T J at contact l along its j-th
         direction: dirs (k, r, 3) per corner row (weighted: a face point's corners carry
         their barycentric weights), verts (k,) vertex ids, xv (k, 3) their positions, starts
         (m,) the first corner row of each contact (corner rows of a contact are adjacent).
-        Dense, or CSR when the model has full-space domains (n_gen large, rows sparse);
-        entries=True: without full-space domains, as sparse_rows.ContactRowEntries (each
-        row's 26 or so entries instead of n_gen columns; the frictionless solve reads them)."""
+        Without full-space domains as sparse_rows.ContactRowEntries (each row's 26 or so
+        entries instead of n_gen columns), else CSR (n_gen large, rows sparse)."""
         L = self.layout
         k, r = dirs.shape[:2]
         vrow = L.vertex_row[verts]
         m = len(starts)
-        if not self.F and entries:
+        if not self.F:
             row_of = np.arange(k) if m == k else np.searchsorted(starts, np.arange(k), side="right") - 1
             return ContactRowEntries.build(dirs, vrow, L, self.frames.R, self.frames.c, xv, self._frame_cols,
                                            row_of, m, dt, self.n_gen)
-        if not self.F:
-            # Every vertex is in a subspace domain: one compiled pass (reconstruct.py).
-            row_of = np.searchsorted(starts, np.arange(k), side="right") - 1
-            out = np.zeros((m * r, self.n_gen))
-            reconstruct.contact_rows_kernel(np.ascontiguousarray(dirs), vrow, L.U, L.row_domain, self.frames.R,
-                                            self.frames.c, np.ascontiguousarray(xv), L.q_index, L.mask,
-                                            self._frame_cols, row_of, dt, out)
-            return out
         blocks = []                                          # (corner rows, direction, columns, values)
         sel = np.flatnonzero(vrow >= 0)
         if sel.size:

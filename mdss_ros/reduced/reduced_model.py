@@ -429,7 +429,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
     def _build_interface_maps(self):
         """Static part of J for the interface vertices: generalised columns, full flags;
         and each domain's frame columns (D, 6), linear then angular, -1 for a fixed
-        domain (contact rows: reconstruct.contact_rows_kernel)."""
+        domain (contact rows: sparse_rows.ContactRowEntries)."""
         L = self.layout
         self._frame_cols = np.full((L.D, 6), -1, dtype=np.int64)
         self._frame_cols[L.movers] = np.hstack([L.lin_index, L.ang_index])

@@ -1,5 +1,5 @@
 """Contact constraint rows held as their entries (docs/method.md §14): a reduced body's
-frictionless rows without full-space domains.
+rows, frictionless or frictional, without full-space domains.
 
 A contact row dt n^T J touches the columns of its corners' domains only: r_k modal
 columns and six frame columns per corner (26 of the caterpillar's 208). Its dense (m,
@@ -10,8 +10,8 @@ solve reads:
 
 - C @ x (m,) and C^T lam (n,), in compiled passes over the entries;
 - C[idx] (len(idx), n): dense rows, for the solves of the working set's rows. They are
-  the same numbers, bit for bit, as reconstruct.contact_rows_kernel's dense rows: the same
-  values added in the same order into zeros;
+  the same numbers, bit for bit, as the dense kernel they replaced (kept as the reference in
+  test/test_sparse_rows.py): the same values added in the same order into zeros;
 - norms (m,) of the rows, and take(sel), a subset of rows.
 
 C @ x sums over a row's entries in corner order, where the dense product summed all n
@@ -24,7 +24,7 @@ from numba import njit
 @njit(cache=True)
 def row_entries_kernel(dirs, rows, U, row_domain, R, c, xv, q_index, mask, frame_cols, row_of, dt,
                        cols, vals, count):
-    """The entries of contact_rows_kernel's rows: row row_of[i] r + j gets, for corner row
+    """The entries of the contact rows: row row_of[i] r + j gets, for corner row
     i along its j-th direction, dt d^T J_i on its domain's modal columns (where mask) and
     frame columns, each appended as (column, value) in the order that kernel adds them.
     cols, vals (m r, w) written up to count (m r,), which starts at zero."""
@@ -119,8 +119,8 @@ class ContactRowEntries:
 
     @classmethod
     def build(cls, dirs, vrow, layout, R, c, xv, frame_cols, row_of, m, dt, n):
-        """The rows of reconstruct.contact_rows_kernel (same arguments): m contacts, n
-        columns (n_gen)."""
+        """The rows dt d^T J of corner rows along dirs (k, r, 3) (row_entries_kernel's
+        arguments): m contacts, n columns (n_gen)."""
         k, r = dirs.shape[:2]
         corners = 1 if k == m else np.bincount(row_of, minlength=m).max()     # corner rows per contact
         w = max(int(corners) * (layout.U.shape[2] + 6), 1)
