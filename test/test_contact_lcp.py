@@ -212,3 +212,12 @@ def test_reset_repeats_contact_steps_bit_for_bit():
     again = run()
     assert np.abs(first[10:, 2]).min() > 0               # the ball is pressing
     np.testing.assert_array_equal(first, again)
+
+
+def test_member_is_np_isin_for_contact_keys():
+    from mdss_ros.contact.unilateral import member
+    rng = np.random.default_rng(2)
+    for n_keys, n_among, span in ((0, 5, 10), (5, 0, 10), (200, 40, 3000), (50, 50, 60)):
+        keys = rng.integers(0, span, n_keys)
+        among = rng.integers(0, span, n_among)
+        assert np.array_equal(member(keys, among), np.isin(keys, among))

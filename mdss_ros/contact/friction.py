@@ -49,7 +49,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from numba import njit
 
-from .unilateral import contact_correction, solve_lcp
+from .unilateral import contact_correction, member, solve_lcp
 
 
 #: |F| / (force scale) above which a solve counts as unconverged (restarts, then reported):
@@ -691,7 +691,7 @@ def effective_mu(mu_s, mu_k, keys, previous, n_colliders):
         return mu_s
     fast = previous["slip_speed"] > STICTION_SPEED
     sliding = np.asarray(previous["vertices"])[fast] * n_colliders + np.asarray(previous["which"])[fast]
-    return np.where(np.isin(keys, sliding), mu_k, mu_s)
+    return np.where(member(keys, sliding), mu_k, mu_s)
 
 
 def warm_start(previous, keys, tangents, n_colliders):

@@ -134,6 +134,18 @@ def _lawson_hanson(S, q, tol, max_iterations, done, start):
     return lam, {"iterations": it, "active": int(passive.sum()), "unconverged": True}
 
 
+def member(keys, among):
+    """np.isin(keys, among) for non-negative integer keys (k,), (a,), through a table over
+    the keys' range: np.isin sorted both (contact keys, vertex id x colliders + collider,
+    span about 10 times their count, too wide for its own table), about 0.2 ms of a loaded
+    caterpillar step in the LCP's first guess (48 against 4 us hot)."""
+    if len(keys) == 0 or len(among) == 0:
+        return np.zeros(len(keys), dtype=bool)
+    table = np.zeros(int(max(keys.max(), among.max())) + 1, dtype=bool)
+    table[among] = True
+    return table[keys]
+
+
 def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None, compliance=None):
     """Multipliers and velocity correction of one linear solve with contact.
 
@@ -203,7 +215,7 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
             S[work.size:, :work.size] += compliance.block(viol, work)
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
-        C_work = C[work]
+        C_work = sp.vstack([C_work, C_viol]).tocsr() if sp.issparse(C_work) else np.vstack([C_work, C_viol])
         guess = np.concatenate([lam_w > 0, np.ones(viol.size, bool)])
     lam[work] = lam_w
     return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,

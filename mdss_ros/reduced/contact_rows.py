@@ -15,6 +15,7 @@ domains make n_gen large.
 import numpy as np
 import scipy.sparse as sp
 
+from ..contact.unilateral import member
 from ..rotations import cross
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
@@ -31,17 +32,6 @@ def _kept_solves(resolve):
             kept[key] = resolve(B)
         return kept[key]
     return solve
-
-
-def _member(keys, among):
-    """np.isin(keys, among) for non-negative integer keys, through a table over the keys'
-    range: np.isin sorted both (the candidates' keys span about 10 times their count, too
-    wide for its own table), about 0.2 ms of a loaded caterpillar step."""
-    if len(keys) == 0 or len(among) == 0:
-        return np.zeros(len(keys), dtype=bool)
-    table = np.zeros(int(max(keys.max(), among.max())) + 1, dtype=bool)
-    table[among] = True
-    return table[keys]
 
 
 class ContactRows:
@@ -246,7 +236,7 @@ class ContactRows:
         if same_step:
             hint = lam_n > 0
         else:
-            hint = _member(keys, np.concatenate(history)) if history else None
+            hint = member(keys, np.concatenate(history)) if history else None
         # limit_dent solves the same contact again under a smaller compliance, and its rounds
         # ask the step's matrix for the same rows' solutions: they are kept for the step.
         resolve = self._resolve if self._contact_compliance is None else _kept_solves(self._resolve)
