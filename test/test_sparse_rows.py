@@ -142,3 +142,41 @@ def test_frictional_correction_reads_entries_as_the_dense_rows():
     scale = np.abs(lam_d).max()
     assert scale > 0 and np.allclose(lam_e, lam_d, rtol=0, atol=1e-12 * scale)     # measured: equal
     assert np.allclose(corr_e, corr_d, rtol=0, atol=1e-12 * np.abs(corr_d).max())
+
+
+def test_frictional_rows_build_only_what_the_solve_reads():
+    """reduced/contact_rows.FrictionalRows build a contact's tangential rows only when the
+    Coulomb solve asks for them (its working set), and the solve's answer is the one on
+    every contact's three rows built at once (bit for bit: the same rows, the same gaps),
+    under a co-rotating step's rigid velocity (a free block on a tilted floor)."""
+    from mdss_ros.contact.friction import FrictionRows, frictional_correction, rows_of
+    from mdss_ros.simulator import Simulator
+    from mdss_ros.verify.friction_study import MODELS, incline
+    sim = Simulator(incline(20.0, MODELS["reduced"]))
+    sim.step(5)
+    model = sim.model
+    gm = model._global_motion(model._inertia_of(model.q))
+    assert gm is not None
+    spec = sim._contact_spec()
+    lazy = model._contact_rows(spec, gm, model.dt)[5]
+    every = model._contact_rows(spec, gm, model.dt)[5]
+    m, n = len(lazy.mu), lazy.C.shape[1]
+    every.ensure(np.arange(m))
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=n) * 1e-2
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    solve = lambda rhs: np.linalg.solve(A, rhs)                       # noqa: E731
+    whole = FrictionRows(*every.at(v).block(np.arange(m)))
+    assert lazy.guess is not None                     # the last step's contacts: built first
+    lam_w, corr_w, info_w = frictional_correction(solve, whole, None, every.mu, regularize=1e-9,
+                                                  lam_guess=every.guess)
+    lam_l, corr_l, info_l = frictional_correction(solve, lazy.at(v), None, lazy.mu, regularize=1e-9,
+                                                  lam_guess=lazy.guess)
+    built = np.flatnonzero(lazy.slot >= 0)
+    assert 0 < info_l["working_set"] == len(built) < m            # only the working set's rows
+    assert info_l["active"] == info_w["active"] > 0
+    assert np.array_equal(lam_l, lam_w) and np.array_equal(corr_l, corr_w)
+    dense, g = lazy.at(v).block(built)
+    assert np.array_equal(dense, whole.C[rows_of(built)]) and np.array_equal(g, whole.g[rows_of(built)])
+    assert np.array_equal(lazy.tangents[built], every.tangents[built])

@@ -575,13 +575,42 @@ def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_R
     return lam, dict(info, proximal_rounds=k)
 
 
+def rows_of(contacts):
+    """Row indices (3k,) of the rows n, t1, t2 of contacts (k,)."""
+    return (3 * np.asarray(contacts, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+
+
+class FrictionRows:
+    """The rows (n, t1, t2) of m contacts and their values after the free step, as
+    frictional_correction reads them: normal() gives every contact's normal row and gap
+    (the contacts outside the working set are checked on these alone), block(contacts)
+    the three rows of some contacts and their values (the working set's solve). This one
+    holds them all: C (3m, n) (ndarray, scipy sparse or sparse_rows.ContactRowEntries)
+    and g (3m,). A reduced body's rows build a contact's tangential rows only when asked
+    (reduced/contact_rows.FrictionalRows)."""
+
+    def __init__(self, C, g):
+        self.C, self.g = C, np.asarray(g)
+        self.m, self.n = C.shape[0] // 3, C.shape[1]
+
+    def normal(self):
+        """(C_n (m, n), g_n (m,))."""
+        return _normal_rows(self.C), self.g[0::3]
+
+    def block(self, contacts):
+        """(rows (3k, n): dense, or scipy sparse when C is, g (3k,)) of contacts (k,)."""
+        r = rows_of(contacts)
+        return self.C[r], self.g[r]
+
+
 def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_rounds=50, hint=None,
                           lam_guess=None, compliance=None):
     """Multipliers and velocity correction of one linear solve with frictional contact.
 
     As unilateral.contact_correction, with three rows per contact: C (3m, n) in contact
     order (n, t1, t2), dense or scipy sparse; g (3m,) the rows' value after the
-    unconstrained step (gap for n, slip relative to the collider for t). Contacts that
+    unconstrained step (gap for n, slip relative to the collider for t); or C a
+    FrictionRows that gives them (g None). Contacts that
     can matter form a working set: those the free step violates (or the hint), solved with
     solve_coulomb on W = C_w A^-1 C_w^T; contacts outside it whose gap the corrected step
     violates join it, until none does. A contact left out has lambda = 0 and a positive
@@ -592,12 +621,13 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     solve_lcp with that diagonal shift); hint (m,) bool; lam_guess (m, 3) a first guess (the last
     Newton iteration's forces); compliance: a reduced body's residual contact compliance
     on the 3m rows (as in unilateral.contact_correction), added to W. Returns (lam (m, 3), correction (n,), info); info["w"]
-    (m, 3) is each contact's gap and slip after the correction.
+    (m, 3) is each contact's gap after the correction, and the working set's slip (zero
+    elsewhere: a contact outside it has no force, and its slip is not asked for).
     """
-    n_rows, n = C.shape
-    m = n_rows // 3
+    rows = C if isinstance(C, FrictionRows) else FrictionRows(C, g)
+    m, n = rows.m, rows.n
     lam = np.zeros((m, 3))
-    gn = g[0::3]
+    C_n, gn = rows.normal()
     scale = max(float(np.abs(gn).max()), 1e-300) if m else 1.0
     violated = gn < -tol * scale
     if not violated.any() and (hint is None or not np.any(hint)):
@@ -609,21 +639,16 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         # No guess: the frictionless answer's contacts. Far fewer than the rows the free
         # step violates when a collider first meets a reduced body (9 of 121 for a pad on
         # a 30-mode block), whose rows are then strongly dependent and slow Newton down.
-        lam_n, _, _ = contact_correction(resolve, _normal_rows(C), gn, regularize=regularize, tol=tol,
+        lam_n, _, _ = contact_correction(resolve, C_n, gn, regularize=regularize, tol=tol,
                                          compliance=None if compliance is None else compliance.normal())
         hint = lam_n > 0
         lam_guess = np.zeros((m, 3))
         lam_guess[:, 0] = lam_n
     work = np.flatnonzero(violated if not np.any(hint) else hint)
-    # C[idx]: an ndarray's rows, sparse rows, or the dense rows of a reduced body's
-    # sparse_rows.ContactRowEntries (built once per index set here).
-    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C) else (lambda rows: rows.T)
-
-    def rows_of(contacts):
-        return (3 * contacts[:, None] + np.arange(3)).ravel()
-
     r = rows_of(work)
-    C_r = C[r]
+    C_r, g_r = rows.block(work)
+    # The working set's rows: dense ndarrays, or scipy sparse rows (a full-space body's).
+    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C_r) else (lambda rows: rows.T)
     Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_r)))).reshape(n, -1)
     Wd = np.asarray(C_r @ Y)
     if compliance is not None:
@@ -633,21 +658,25 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     info = {}
     for rounds in range(1, max_rounds + 1):
         if regularize > 0.0:
-            lam_w, info = solve_proximal(Wd, g[r], mu[work], lam0=guess, tol=tol)
+            lam_w, info = solve_proximal(Wd, g_r, mu[work], lam0=guess, tol=tol)
         else:
-            lam_w, info = solve_coulomb(_positive(Wd, 0.0)[0], g[r], mu[work], lam0=guess, tol=tol)
+            lam_w, info = solve_coulomb(_positive(Wd, 0.0)[0], g_r, mu[work], lam0=guess, tol=tol)
         corr = Y @ lam_w.ravel()
-        w_all = C @ corr + g
+        # Gaps of every contact, the working set's gap and slip: the rows outside it only
+        # decide who joins.
+        gap = C_n @ corr + gn
+        w_r = C_r @ corr + g_r
         if compliance is not None:
-            w_all += compliance.apply(r, lam_w.ravel())
-        gap = w_all[0::3]
+            shared = compliance.apply(r, lam_w.ravel())
+            gap += shared[0::3]
+            w_r += shared[r]
         out = np.ones(m, dtype=bool)
         out[work] = False
         viol = np.flatnonzero(out & (gap < -tol * scale))
         if viol.size == 0:
             break
         r_new = rows_of(viol)
-        C_new = C[r_new]
+        C_new, g_new = rows.block(viol)
         Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_new)))).reshape(n, -1)
         Wd = np.block([[Wd, np.asarray(C_r @ Y_new)], [np.asarray(C_new @ Y), np.asarray(C_new @ Y_new)]])
         if compliance is not None:
@@ -658,11 +687,14 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         Y = np.hstack([Y, Y_new])
         work = np.concatenate([work, viol])
         r = np.concatenate([r, r_new])
+        g_r = np.concatenate([g_r, g_new])
         C_r = sp.vstack([C_r, C_new]).tocsr() if sp.issparse(C_r) else np.vstack([C_r, C_new])
         guess = np.vstack([lam_w, np.zeros((viol.size, 3))])
     lam[work] = lam_w
-    return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds,
-                       "w": w_all.reshape(m, 3),
+    w = np.zeros((m, 3))
+    w[:, 0] = gap
+    w[work] = w_r.reshape(-1, 3)
+    return lam, corr, {"rows": m, "working_set": int(work.size), "rounds": rounds, "w": w,
                        "active": int((lam[:, 0] > 0).sum()), "stick": int(info["stick"].sum()),
                        "slip": int(info["slip"].sum()), "newton": info["iterations"],
                        "unconverged": bool(viol.size) or info.get("unconverged", False)}
@@ -694,13 +726,9 @@ def effective_mu(mu_s, mu_k, keys, previous, n_colliders):
     return np.where(member(keys, sliding), mu_k, mu_s)
 
 
-def warm_start(previous, keys, tangents, n_colliders):
-    """The last step's forces as this step's first guess: lam (k, 3) in this step's
-    normal and tangent directions (tangents (k, 2, 3)) for contacts keys (k,) (as in
-    effective_mu) found in the previous record, zero for new ones; None when none is
-    found. A resting, held or steadily sliding body then needs one or two Newton
-    iterations instead of finding its stick set again from the frictionless answer
-    (ten on the caterpillar at rest)."""
+def previous_match(previous, keys, n_colliders):
+    """(found (k,) bool, src (found.sum(),)): which contacts keys (k,) (as in effective_mu)
+    the previous step's record holds, and their index in it; None when it holds none."""
     if previous is None or "slip_speed" not in previous or len(previous["vertices"]) == 0:
         return None
     prev_keys = np.asarray(previous["vertices"]) * n_colliders + np.asarray(previous["which"])
@@ -709,7 +737,21 @@ def warm_start(previous, keys, tangents, n_colliders):
     found = prev_keys[order[pos]] == keys
     if not found.any():
         return None
-    src = order[pos[found]]
+    return found, order[pos[found]]
+
+
+def warm_start(previous, keys, tangents, n_colliders, match=None):
+    """The last step's forces as this step's first guess: lam (k, 3) in this step's
+    normal and tangent directions (tangents (k, 2, 3), read at the found contacts only)
+    for contacts keys (k,) (as in effective_mu) found in the previous record, zero for
+    new ones; None when none is found. match: previous_match's answer, if already had.
+    A resting, held or steadily sliding body then needs one or two Newton
+    iterations instead of finding its stick set again from the frictionless answer
+    (ten on the caterpillar at rest)."""
+    match = previous_match(previous, keys, n_colliders) if match is None else match
+    if match is None:
+        return None
+    found, src = match
     lam = np.zeros((len(keys), 3))
     lam[found, 0] = previous["normal_force"][src]
     lam[found, 1:] = np.einsum("kij,kj->ki", tangents[found], previous["friction"][src])

@@ -15,6 +15,7 @@ domains make n_gen large.
 import numpy as np
 import scipy.sparse as sp
 
+from ..contact.friction import FrictionRows
 from ..contact.unilateral import member
 from ..rotations import cross
 from .residual_compliance import limit_dent
@@ -34,6 +35,120 @@ def _kept_solves(resolve):
     return solve
 
 
+class FrictionalRows:
+    """A reduced body's frictional contact rows (n, t1, t2 per contact; docs/method.md
+    §14.1) for one step's m candidates, whose tangential rows are built for the contacts
+    that ask for them: the Coulomb solve (friction.frictional_correction) reads every
+    contact's normal row, for its gap, but the tangential rows of its working set only,
+    a few dozen of the caterpillar's 800 floor candidates. Building three rows for every
+    candidate, with their tangents and collider slips, was 0.4 ms of a 5 ms step at rest.
+
+    C (m, n_gen) the normal rows (sparse_rows.ContactRowEntries, or CSR beside full-space
+    domains), g_n (m,) their constant part (phi_eff); mu (m,); corners: (vertex ids,
+    positions, normals, weights) of the corner rows and each contact's first and end
+    corner row (m,) (a face point has three); slip_at: (contact spec, which (m,), points (m,
+    3)), for the collider's own slip; dt; rigid_v (m, 3) the rigid velocity a co-rotating
+    step folds into the rows, or None; dent_shift (m, 3) the last dent's share of each
+    row, or None. Built contacts have their tangents (m, 2, 3), their rows' constant part
+    g3 (m, 3) (phi_eff; minus the collider's tangential displacement, plus the rigid
+    velocity's share, minus the dent's) and rigid3 (m, 3) the rigid share alone; guess
+    (m, 3) or None is the last step's forces."""
+
+    def __init__(self, model, C, g_n, mu, corners, slip_at, dt, rigid_v, dent_shift):
+        self.model, self.C, self.mu, self.corners, self.slip_at, self.dt = model, C, mu, corners, slip_at, dt
+        self.rigid_v, self.dent_shift = rigid_v, dent_shift
+        m = len(g_n)
+        self.g_n = g_n
+        self.slot = np.full(m, -1, dtype=np.int64)      # a contact's place in the built rows
+        self.rows3 = None                               # the built contacts' rows, 3 per contact
+        self.tangents = np.zeros((m, 2, 3))
+        self.g3 = np.zeros((m, 3))
+        self.g3[:, 0] = g_n
+        self.rigid3 = np.zeros((m, 3))
+        self.rigid3[:, 0] = model._contact_rigid
+        self.guess = None
+
+    def ensure(self, contacts, tangents=None):
+        """Build the rows of those of contacts (k,) not yet built; tangents (m, 2, 3): every
+        contact's, when already had (else friction.tangent_basis of their normals)."""
+        from ..contact.friction import collider_slip, tangent_basis
+        new = contacts[self.slot[contacts] < 0]
+        if new.size == 0:
+            return
+        verts, xv, normals, weights, first, end = self.corners
+        t = tangent_basis(normals[first[new]]) if tangents is None else tangents[new]
+        counts = end[new] - first[new]
+        starts = np.cumsum(counts) - counts
+        corner = np.repeat(first[new] - starts, counts) + np.arange(int(counts.sum()))
+        dirs = np.concatenate([normals[corner][:, None, :], np.repeat(t, counts, axis=0)], axis=1) \
+            * weights[corner][:, None, None]
+        built = self.model._rows_along(dirs, verts[corner], xv[corner], starts, self.dt)
+        if self.rows3 is None:
+            self.rows3 = built
+        elif isinstance(built, ContactRowEntries):
+            self.rows3 = self.rows3.stacked(built)
+        else:
+            self.rows3 = sp.vstack([self.rows3, built]).tocsr()
+        n_built = int((self.slot >= 0).sum())
+        self.slot[new] = np.arange(n_built, n_built + new.size)
+        self.tangents[new] = t
+        spec, which, points = self.slip_at
+        g_t = collider_slip(spec, which[new], points[new], t)
+        if self.rigid_v is not None:
+            self.rigid3[new, 1:] = self.dt * np.einsum("lij,lj->li", t, self.rigid_v[new])
+            g_t += self.rigid3[new, 1:]
+        if self.dent_shift is not None:
+            g_t -= self.dent_shift[new, 1:]
+        self.g3[new, 1:] = g_t
+
+    def _rows(self, contacts):
+        """(rows (3k, n_gen) dense or CSR, the same as entries or CSR for products) of
+        built contacts (k,)."""
+        r = (3 * self.slot[contacts][:, None] + np.arange(3)).ravel()
+        if isinstance(self.rows3, ContactRowEntries):
+            return self.rows3[r], self.rows3.take(r)
+        rows = self.rows3[r]
+        return rows, rows
+
+    def at(self, v):
+        """The rows with their values at generalised velocities v (n_gen,), for
+        friction.frictional_correction."""
+        return _FrictionalRowsAt(self, v)
+
+    def force(self, lam):
+        """C3^T lam (n_gen,) for forces lam (m, 3), nonzero on built contacts only."""
+        on = np.flatnonzero(np.any(lam != 0.0, axis=1))
+        if on.size == 0:
+            return np.zeros(self.C.shape[1])
+        _, rows = self._rows(on)
+        f = lam[on].ravel()
+        return rows.rmatvec(f) if isinstance(rows, ContactRowEntries) else rows.T @ f
+
+    def work(self, lam, Q):
+        """lam . (C3 Q + rigid3): the work of the forces lam (m, 3) over the step's Q."""
+        on = np.flatnonzero(np.any(lam != 0.0, axis=1))
+        if on.size == 0:
+            return 0.0
+        _, rows = self._rows(on)
+        return float(lam[on].ravel() @ (rows @ Q + self.rigid3[on].ravel()))
+
+
+class _FrictionalRowsAt(FrictionRows):
+    """FrictionalRows with their values g = C3 v + g3 at one v (friction.FrictionRows)."""
+
+    def __init__(self, rows, v):
+        self.rows, self.v = rows, v
+        self.m, self.n = len(rows.g_n), rows.C.shape[1]
+
+    def normal(self):
+        return self.rows.C, self.rows.C @ self.v + self.rows.g_n
+
+    def block(self, contacts):
+        self.rows.ensure(contacts)
+        dense, rows = self.rows._rows(contacts)
+        return dense, rows @ self.v + self.rows.g3[contacts].ravel()
+
+
 class ContactRows:
     """Contact rows of the reduced model and the correction of a Newton step for contact. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
@@ -42,12 +157,10 @@ class ContactRows:
         """Candidate contacts of the surface: (vertices, C (m, n_gen), phi_eff (m,), normals, which,
         friction), or None. C = dt n^T J_l; under a co-rotating step the rigid part of the
         vertex velocity, V + W x (x - C), is a constant folded into phi_eff. friction is
-        None (every collider frictionless) or (C3 (3m, n_gen) rows n, t1, t2 per contact,
-        g3 (3m,) their constant part (phi_eff, minus the collider's tangential displacement,
-        the rigid velocity's share), mu (m,) static or kinetic by the last step's slip,
-        tangents (m, 2, 3), rigid3 (3m,) the rigid share alone, the last step's forces as
-        a first guess (m, 3) or None), as in BackwardEuler._contact_rows (friction.py)."""
-        from ..contact.friction import coefficients, collider_slip, effective_mu, tangent_basis, warm_start
+        None (every collider frictionless) or the contacts' FrictionalRows (rows n, t1, t2
+        per contact, mu static or kinetic by the last step's slip, the last step's forces as
+        a first guess)."""
+        from ..contact.friction import coefficients, effective_mu, previous_match, tangent_basis, warm_start
         from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)                  # with the last step's dent (residual compliance)
@@ -80,17 +193,16 @@ class ContactRows:
         # Without faces every row is a contact of its own (the corner gathers below are skipped).
         one_corner = len(rows) == len(phi)                  # a face adds three rows and one phi
         starts = group if one_corner else np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        # The normal rows of every contact. With friction a contact's tangential rows are
+        # built when the Coulomb solve asks for them (FrictionalRows), except that the
+        # residual compliance's rows need every contact's three directions at once.
+        corners = (verts, xv, normals, weights, starts, np.r_[starts[1:], len(rows)])
+        dirs = normals[:, None, :] * weights[:, None, None]
+        C = self._rows_along(dirs, verts, xv, starts, dt)
         tangents = None
-        if not rough:
-            dirs = normals[:, None, :] * weights[:, None, None]
-            C = self._rows_along(dirs, verts, xv, starts, dt)
-        else:
-            # Rows along n, t1, t2 at once; the normal rows are every third of them.
+        if rough and self.compliance is not None:
             tangents = tangent_basis(normals)                                   # (corner rows, 2, 3)
-            dirs = np.concatenate([normals[:, None, :], tangents], axis=1) * weights[:, None, None]
-            C3 = self._rows_along(dirs, verts, xv, starts, dt)
-            C = (C3.take(np.arange(0, len(C3), 3)) if isinstance(C3, ContactRowEntries)
-                 else C3[0::3] if sp.issparse(C3) else np.ascontiguousarray(C3[0::3]))
+            dirs = np.concatenate([dirs, tangents * weights[:, None, None]], axis=1)
         # The residual compliance's rows (residual_compliance.py): the same directions on
         # the candidate vertices' dent, in their domains' rest axes.
         compliance = None
@@ -102,6 +214,7 @@ class ContactRows:
         norms = (np.sqrt(np.asarray(C.multiply(C).sum(axis=1)).ravel()) if sp.issparse(C)
                  else C.norms() if isinstance(C, ContactRowEntries) else np.sqrt(np.einsum("ij,ij->i", C, C)))
         at = rows                                                               # their rows of ids
+        first, end = corners[4], corners[5]                # each contact's corner rows
         if not one_corner:
             verts, which, normals, xv = verts[starts], which[starts], normals[starts], xv[starts]  # a corner per contact
             at = rows[starts]
@@ -112,11 +225,9 @@ class ContactRows:
         if not movable.all():
             verts, phi, normals, which, xv = verts[movable], phi[movable], normals[movable], which[movable], xv[movable]
             C = C.take(np.flatnonzero(movable)) if isinstance(C, ContactRowEntries) else C[movable]
-            key, at = key[movable], at[movable]
+            key, at, first, end = key[movable], at[movable], first[movable], end[movable]
             if tangents is not None:
                 tangents = tangents[movable]
-                keep3 = (3 * np.flatnonzero(movable)[:, None] + np.arange(3)).ravel()
-                C3 = C3.take(keep3) if isinstance(C3, ContactRowEntries) else C3[keep3]
             if compliance is not None:
                 r = 1 if tangents is None else 3
                 compliance = compliance.take((r * np.flatnonzero(movable)[:, None] + np.arange(r)).ravel())
@@ -147,18 +258,17 @@ class ContactRows:
         if rough:
             n_col = len(contact["colliders"])
             keys = verts * n_col + which
-            mu = effective_mu(*coefficients(contact, which), keys, self.contact, n_col)
-            g3 = np.zeros((len(verts), 3))
-            g3[:, 0] = phi_eff
-            g3[:, 1:] = collider_slip(contact, which, xv, tangents)
-            rigid3 = np.zeros((len(verts), 3))                 # dt (n, t1, t2) . (rigid velocity)
-            rigid3[:, 0] = self._contact_rigid
-            if gm is not None:
-                rigid3[:, 1:] = dt * np.einsum("lij,lj->li", tangents, rigid_v)
-                g3[:, 1:] += rigid3[:, 1:]
-            if dent_shift is not None:
-                g3[:, 1:] -= dent_shift[:, 1:]
-            fric = (C3, g3.ravel(), mu, tangents, rigid3.ravel(), warm_start(self.contact, keys, tangents, n_col))
+            fric = FrictionalRows(self, C, phi_eff, effective_mu(*coefficients(contact, which), keys, self.contact, n_col),
+                                  corners[:4] + (first, end), (contact, which, xv), dt,
+                                  None if gm is None else rigid_v, dent_shift)
+            if tangents is not None:
+                fric.ensure(np.arange(len(verts)), tangents)
+            # The last step's forces as the first guess: their contacts' rows are built now
+            # (they start the working set).
+            match = previous_match(self.contact, keys, n_col)
+            if match is not None:
+                fric.ensure(np.flatnonzero(match[0]))
+                fric.guess = warm_start(self.contact, keys, fric.tangents, n_col, match)
         return verts, C, phi_eff, normals, which, fric
 
     def _rows_along(self, dirs, verts, xv, starts, dt):
@@ -247,12 +357,11 @@ class ContactRows:
             def solve(compliance):
                 return contact_correction(resolve, C, g, regularize=1e-9, hint=hint, compliance=compliance)
         else:
-            C3, g3, mu = friction[:3]
-            guess = self._contact_lam if same_step else friction[5]
-            g = C3 @ (Q + dQ) + g3
+            guess = self._contact_lam if same_step else friction.guess
+            rows3, mu = friction.at(Q + dQ), friction.mu
 
             def solve(compliance):
-                return frictional_correction(resolve, C3, g, mu, regularize=1e-9,
+                return frictional_correction(resolve, rows3, None, mu, regularize=1e-9,
                                              hint=hint if guess is None else None, lam_guess=guess,
                                              compliance=compliance)
         if self._contact_compliance is None:
@@ -270,7 +379,6 @@ class ContactRows:
     def _contact_force(rows, lam):
         """C^T lam (n_gen,): the contact forces as generalised forces, frictional or not."""
         if rows[5] is not None:
-            C3 = rows[5][0]
-            return C3.rmatvec(lam.ravel()) if isinstance(C3, ContactRowEntries) else C3.T @ lam.ravel()
+            return rows[5].force(lam)
         C = rows[1]
         return C.rmatvec(lam) if isinstance(C, ContactRowEntries) else C.T @ lam

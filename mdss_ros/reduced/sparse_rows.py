@@ -169,6 +169,16 @@ class ContactRowEntries:
         _norms(self.cols, self.vals, self.count, np.zeros(self.n), out)
         return out
 
+    def stacked(self, other):
+        """These rows, then other's (same n), as one ContactRowEntries padded to the wider."""
+        w = max(self.cols.shape[1], other.cols.shape[1])
+
+        def wide(a):
+            return a if a.shape[1] == w else np.pad(a, ((0, 0), (0, w - a.shape[1])))
+        return ContactRowEntries(np.vstack([wide(self.cols), wide(other.cols)]),
+                                 np.vstack([wide(self.vals), wide(other.vals)]),
+                                 np.concatenate([self.count, other.count]), self.n)
+
     def take(self, sel):
         """The rows sel (integer indices), as ContactRowEntries."""
         return ContactRowEntries(self.cols[sel], self.vals[sel], self.count[sel], self.n)

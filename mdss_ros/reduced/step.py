@@ -197,7 +197,7 @@ class Step:
                 if sel.size:
                     depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
             w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
-            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction[3],
+            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction.tangents,
                                           pts, depth, w, dt)
             # Work of the contact forces over the step in the step's own terms (the guard's
             # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
@@ -205,7 +205,7 @@ class Step:
             if friction is None:
                 contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
             else:
-                contact_work = float(lam.ravel() @ (friction[0] @ Q + friction[4]))
+                contact_work = friction.work(lam, Q)
         self.last = {"elastic": energy}
         total = 1e3 * (time.perf_counter() - t0)
         residual_ratio = r_last / r0 if r0 > 0 else 0.0
