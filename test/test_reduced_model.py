@@ -145,6 +145,47 @@ def test_block_cholesky_on_a_ring_with_fill():
         b = rng.normal(size=(len(A), 2))
         np.testing.assert_allclose(bc.factor(A).solve(b), np.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
         assert len(bc.fill) >= 2      # a ring always fills when eliminated
+        # Half sweeps: b1^T A^-1 b2 = Z1^T Z2 with Z = L^-1 P b, and backward(forward(b)) the solve.
+        b2 = rng.normal(size=(len(A), 3))
+        Z1, Z2 = bc.forward(b), bc.forward(b2)
+        np.testing.assert_allclose(Z1.T @ Z2, b.T @ np.linalg.solve(A, b2), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(bc.backward(Z2), np.linalg.solve(A, b2), rtol=1e-10, atol=1e-12)
+
+
+def test_contact_solves_from_half_sweeps_equal_the_full_solves():
+    """contact_rows.CholeskySolves (columns Z = L^-1 P C^T, Delassus Z_a^T Z_b, correction by
+    one backward sweep) against unilateral.Solves on A's full solve, and the two contact
+    solvers' answers with each (a working set that grows in later rounds)."""
+    from mdss_ros.contact.friction import frictional_correction
+    from mdss_ros.contact.unilateral import Solves, contact_correction
+    from mdss_ros.reduced.contact_rows import CholeskySolves
+    rng = np.random.default_rng(4)
+    sizes, edges = [4, 5, 3], np.array([[0, 1], [1, 2]])
+    n = sum(sizes)
+    B = rng.normal(size=(n, n))
+    A = B @ B.T + n * np.eye(n)
+    off = np.concatenate([[0], np.cumsum(sizes)])
+    A[off[0]:off[1], off[2]:] = 0.0                 # blocks 0 and 2 are not coupled
+    A[off[2]:, off[0]:off[1]] = 0.0
+    bc = BlockCholesky(sizes, edges, [0, 2, 1]).factor(A)
+    half, full = CholeskySolves(bc), Solves(lambda rhs: np.linalg.solve(A, rhs))
+    C = rng.normal(size=(3 * 8, n))
+    Ca, Cb = C[:5], C[5:9]
+    Ya, Yb, Za, Zb = full.columns(Ca), full.columns(Cb), half.columns(Ca), half.columns(Cb)
+    np.testing.assert_allclose(half.delassus(Ca, Za, Cb, Zb), full.delassus(Ca, Ya, Cb, Yb), rtol=1e-10, atol=1e-13)
+    lam = rng.normal(size=5)
+    np.testing.assert_allclose(half.correction(Za, lam), full.correction(Ya, lam), rtol=1e-10, atol=1e-13)
+    g = rng.normal(size=len(C)) * 0.1
+    hint = np.zeros(len(C), dtype=bool)
+    hint[:2] = True
+    (l_h, c_h, i_h), (l_f, c_f, i_f) = (contact_correction(s, C, g, hint=hint) for s in (half, full))
+    assert i_h["rounds"] == i_f["rounds"] > 1 and i_h["active"] == i_f["active"] > 0
+    np.testing.assert_allclose(l_h, l_f, rtol=1e-9, atol=1e-12 * np.abs(l_f).max())
+    np.testing.assert_allclose(c_h, c_f, rtol=1e-9, atol=1e-12 * np.abs(c_f).max())
+    mu = np.full(8, 0.3)
+    (l_h, c_h, i_h), (l_f, c_f, i_f) = (frictional_correction(s, C, g, mu, hint=hint[:8]) for s in (half, full))
+    assert i_h["working_set"] == i_f["working_set"] > 2 and i_h["active"] == i_f["active"] > 0
+    np.testing.assert_allclose(l_h, l_f, rtol=1e-8, atol=1e-11 * np.abs(l_f).max())
 
 
 def _regions_scene(full_space, basis=None, modes=1000, **extra):

@@ -49,7 +49,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from numba import njit
 
-from .unilateral import contact_correction, member, solve_lcp
+from .unilateral import Solves, contact_correction, member, solve_lcp
 
 
 #: |F| / (force scale) above which a solve counts as unconverged (restarts, then reported):
@@ -625,6 +625,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     elsewhere: a contact outside it has no force, and its slip is not asked for).
     """
     rows = C if isinstance(C, FrictionRows) else FrictionRows(C, g)
+    solves = resolve if isinstance(resolve, Solves) else Solves(resolve)
     m, n = rows.m, rows.n
     lam = np.zeros((m, 3))
     C_n, gn = rows.normal()
@@ -639,18 +640,17 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
         # No guess: the frictionless answer's contacts. Far fewer than the rows the free
         # step violates when a collider first meets a reduced body (9 of 121 for a pad on
         # a 30-mode block), whose rows are then strongly dependent and slow Newton down.
-        lam_n, _, _ = contact_correction(resolve, C_n, gn, regularize=regularize, tol=tol,
+        lam_n, _, _ = contact_correction(solves, C_n, gn, regularize=regularize, tol=tol,
                                          compliance=None if compliance is None else compliance.normal())
         hint = lam_n > 0
         lam_guess = np.zeros((m, 3))
         lam_guess[:, 0] = lam_n
     work = np.flatnonzero(violated if not np.any(hint) else hint)
     r = rows_of(work)
-    C_r, g_r = rows.block(work)
     # The working set's rows: dense ndarrays, or scipy sparse rows (a full-space body's).
-    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C_r) else (lambda rows: rows.T)
-    Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_r)))).reshape(n, -1)
-    Wd = np.asarray(C_r @ Y)
+    C_r, g_r = rows.block(work)
+    Y = solves.columns(C_r)
+    Wd = solves.delassus(C_r, Y, C_r, Y)
     if compliance is not None:
         Wd = Wd + compliance.block(r, r)
     Wd = 0.5 * (Wd + Wd.T)
@@ -661,7 +661,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
             lam_w, info = solve_proximal(Wd, g_r, mu[work], lam0=guess, tol=tol)
         else:
             lam_w, info = solve_coulomb(_positive(Wd, 0.0)[0], g_r, mu[work], lam0=guess, tol=tol)
-        corr = Y @ lam_w.ravel()
+        corr = solves.correction(Y, lam_w.ravel())
         # Gaps of every contact, the working set's gap and slip: the rows outside it only
         # decide who joins.
         gap = C_n @ corr + gn
@@ -677,8 +677,9 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
             break
         r_new = rows_of(viol)
         C_new, g_new = rows.block(viol)
-        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_new)))).reshape(n, -1)
-        Wd = np.block([[Wd, np.asarray(C_r @ Y_new)], [np.asarray(C_new @ Y), np.asarray(C_new @ Y_new)]])
+        Y_new = solves.columns(C_new)
+        Wd = np.block([[Wd, solves.delassus(C_r, Y, C_new, Y_new)],
+                       [solves.delassus(C_new, Y_new, C_r, Y), solves.delassus(C_new, Y_new, C_new, Y_new)]])
         if compliance is not None:
             both = np.concatenate([r, r_new])
             Wd[:, r.size:] += compliance.block(both, r_new)

@@ -146,6 +146,40 @@ def member(keys, among):
     return table[keys]
 
 
+class Solves:
+    """What the contact solvers ask of the step's matrix A (n, n), for the rows C_r (k, n)
+    of a working set (dense, or scipy sparse): their columns, the Delassus block C_a A^-1
+    C_b^T of two row sets from their columns, and the velocity correction A^-1 C_r^T lam.
+    This one from resolve(B), A X = B for B (n, k): the columns are Y = A^-1 C_r^T.
+    keep: answer a right-hand side seen before with the same columns (a solve repeated
+    under another residual compliance, residual_compliance.limit_dent). A reduced body
+    with a Cholesky factor uses half sweeps instead (reduced/contact_rows.CholeskySolves)."""
+
+    def __init__(self, resolve=None, keep=False):
+        self._resolve = resolve
+        self._kept = {} if keep else None
+
+    def columns(self, rows):
+        B = np.ascontiguousarray(rows.T.toarray() if sp.issparse(rows) else rows.T)
+        if self._kept is None:
+            return self._sweep(B)
+        key = (B.shape, B.tobytes())
+        if key not in self._kept:
+            self._kept[key] = self._sweep(B)
+        return self._kept[key]
+
+    def _sweep(self, B):
+        return np.asarray(self._resolve(B)).reshape(B.shape[0], -1)
+
+    def delassus(self, rows_a, cols_a, rows_b, cols_b):
+        """C_a A^-1 C_b^T (k_a, k_b)."""
+        return np.asarray(rows_a @ cols_b)
+
+    def correction(self, cols, lam):
+        """A^-1 C_r^T lam (n,) for lam (k,) on the rows whose columns are cols."""
+        return cols @ lam
+
+
 def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None, compliance=None):
     """Multipliers and velocity correction of one linear solve with contact.
 
@@ -171,9 +205,10 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     dent, reduced/residual_compliance.ContactCompliance): its block(a, b) joins S, so
     w = (C Y + W_res) lam + g, and apply(b, lam) adds its share to every row's gap.
 
-    resolve(B) solves A X = B for B (n, k); C (m, n) dense or scipy sparse; g (m,).
-    Returns (lam (m,), correction (n,) = Y lam, info).
+    resolve(B) solves A X = B for B (n, k), or resolve is a Solves; C (m, n) dense or scipy
+    sparse; g (m,). Returns (lam (m,), correction (n,) = Y lam, info).
     """
+    solves = resolve if isinstance(resolve, Solves) else Solves(resolve)
     m, n = C.shape
     lam = np.zeros(m)
     scale = max(float(np.abs(g).max()), 1e-300) if m else 1.0
@@ -184,10 +219,9 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     work = np.flatnonzero(violated if hint is None else hint)
     # C[idx]: an ndarray's rows, sparse rows, or the dense rows of a
     # reduced/sparse_rows.ContactRowEntries (built once per index set here).
-    dense_t = (lambda rows: rows.T.toarray()) if sp.issparse(C) else (lambda rows: rows.T)
     C_work = C[work]
-    Y = np.asarray(resolve(np.ascontiguousarray(dense_t(C_work)))).reshape(n, -1)
-    S = np.asarray(C_work @ Y)
+    Y = solves.columns(C_work)
+    S = solves.delassus(C_work, Y, C_work, Y)
     if compliance is not None:
         S = S + compliance.block(work, work)
     shift = regularize * max(float(np.mean(np.diag(S))), 1e-300) if regularize > 0.0 else 0.0
@@ -195,7 +229,7 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
     info = {}
     for rounds in range(1, max_rounds + 1):
         lam_w, info = solve_lcp(S, g[work], tol=tol, shift=shift, active=guess)
-        corr = Y @ lam_w
+        corr = solves.correction(Y, lam_w)
         w = C @ corr + g
         if compliance is not None:
             w += compliance.apply(work, lam_w)
@@ -206,9 +240,9 @@ def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, 
             break
         # Rows the corrected step violates join: their solves and S's new rows and columns.
         C_viol = C[viol]
-        Y_new = np.asarray(resolve(np.ascontiguousarray(dense_t(C_viol)))).reshape(n, -1)
-        S = np.block([[S, np.asarray(C_work @ Y_new)],
-                      [np.asarray(C_viol @ Y), np.asarray(C_viol @ Y_new)]])
+        Y_new = solves.columns(C_viol)
+        S = np.block([[S, solves.delassus(C_work, Y, C_viol, Y_new)],
+                      [solves.delassus(C_viol, Y_new, C_work, Y), solves.delassus(C_viol, Y_new, C_viol, Y_new)]])
         if compliance is not None:
             both = np.concatenate([work, viol])
             S[:, work.size:] += compliance.block(both, viol)

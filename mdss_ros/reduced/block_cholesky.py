@@ -102,12 +102,12 @@ def factor_blocks(A, po, later_ptr, later_idx):
 
 
 @njit(cache=True)
-def solve_blocks(L, po, later_ptr, later_idx, y):
-    """Solve L L^T X = Y in place: y (S, m) right-hand sides, permuted to elimination
-    order; L from factor_blocks."""
+def forward_blocks(L, po, later_ptr, later_idx, y):
+    """Solve L Z = Y in place: y (S, m) right-hand sides, permuted to elimination order;
+    L from factor_blocks."""
     n_blocks = len(po) - 1
     n_rhs = y.shape[1]
-    for p in range(n_blocks):                          # forward: L Z = Y
+    for p in range(n_blocks):
         a0, a1 = po[p], po[p + 1]
         for j in range(a0, a1):
             for m in range(a0, j):
@@ -121,7 +121,14 @@ def solve_blocks(L, po, later_ptr, later_idx, y):
                 for m in range(a0, a1):
                     for c in range(n_rhs):
                         y[i, c] -= L[i, m] * y[m, c]
-    for p in range(n_blocks - 1, -1, -1):              # backward: L^T X = Z
+
+
+@njit(cache=True)
+def backward_blocks(L, po, later_ptr, later_idx, y):
+    """Solve L^T X = Z in place: y (S, m), in elimination order."""
+    n_blocks = len(po) - 1
+    n_rhs = y.shape[1]
+    for p in range(n_blocks - 1, -1, -1):
         a0, a1 = po[p], po[p + 1]
         for t in range(later_ptr[p], later_ptr[p + 1]):
             q = later_idx[t]
@@ -187,8 +194,21 @@ class BlockCholesky:
     def solve(self, b):
         """x (S,) or (S, m) with A x = b."""
         b = np.asarray(b, dtype=np.float64)
-        y = np.ascontiguousarray(b.reshape(len(b), -1)[self.perm])
-        solve_blocks(self.L, self.po, self.later_ptr, self.later_idx, y)
+        return self.backward(self.forward(b.reshape(len(b), -1)), overwrite=True).reshape(b.shape)
+
+    def forward(self, b):
+        """Z = L^-1 P b (S, m) for b (S, m): half a solve, in elimination order. With it
+        b1^T A^-1 b2 = Z1^T Z2 (A = P^T L L^T P), which the contact solvers use to form
+        C A^-1 C^T from one sweep per column instead of two."""
+        y = np.ascontiguousarray(np.asarray(b, dtype=np.float64)[self.perm])
+        forward_blocks(self.L, self.po, self.later_ptr, self.later_idx, y)
+        return y
+
+    def backward(self, z, overwrite=False):
+        """x = P^T L^-T z (S, m) for z (S, m) in elimination order: the other half
+        (overwrite: z, C-contiguous float64, may be used as the work array)."""
+        y = z if overwrite else np.array(z, dtype=np.float64, order="C")
+        backward_blocks(self.L, self.po, self.later_ptr, self.later_idx, y)
         x = np.empty_like(y)
         x[self.perm] = y
-        return x.reshape(b.shape)
+        return x

@@ -142,6 +142,9 @@ class UnifiedSystem:
     """Generalised mass, the unified matrix, its solve and the two-step foil. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
+    #: The last step's block Cholesky factor, or None (set by _solve).
+    _factor = None
+
     def _subspace_mass(self, frames, predicted_dt=None, inertia=None):
         """Mgen's subspace part as a SubspaceMass. predicted_dt puts each domain's inertia
         at the rotation exp(dt w) R it will have after the step: the angular rows are in
@@ -166,6 +169,9 @@ class UnifiedSystem:
 
     def _solve(self, A_ss, A_sI, A_ff, rhs):
         t0 = time.perf_counter()
+        # The block Cholesky factor, when the step has one: the contact solves use its
+        # half sweeps (contact_rows.CholeskySolves); any other factor answers by _resolve.
+        self._factor = None
         if self.F == 0 and self.unsymmetric:
             lu = sla.lu_factor(A_ss, check_finite=False)
             self._resolve = lambda b: sla.lu_solve(lu, b, check_finite=False)
@@ -175,6 +181,7 @@ class UnifiedSystem:
             try:
                 self.block_solver.factor(A_ss)
                 self._resolve = self.block_solver.solve
+                self._factor = self.block_solver
             except NotPositiveDefinite:
                 # Large compression (or a centrifugal stiffness) can make A indefinite; LU
                 # still gives the Newton step of the linearised system. Its result is checked
