@@ -442,8 +442,9 @@ def _newton(W, g, mu, lam0, tol, max_iterations):
                                               tol * scale, max_iterations)
     if not ok:
         return _newton_numpy(W, g, mu, lam0, tol, max_iterations)
-    _, parts = _residual(W, g, mu, rho, lam)
-    stick = parts[2]
+    stick = np.empty(m, dtype=np.bool_)
+    _residual_kernel(W, np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(mu, dtype=np.float64),
+                     rho, lam, np.empty((m, 3)), stick)
     in_contact = lam[:, 0] > 0.0
     return lam, {"iterations": it, "line_search_cuts": cuts, "residual": float(np.sqrt(merit)) / scale,
                  "stick": in_contact & stick, "slip": in_contact & ~stick,
@@ -530,7 +531,7 @@ PROXIMAL_SHIFT = 1e-6
 PROXIMAL_ROUNDS = 10
 
 
-def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_ROUNDS):
+def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_ROUNDS, definite=False):
     """solve_coulomb for W symmetric positive semi-definite with dependent rows (a reduced
     body: more contact rows than the modes can move apart, so W is singular and its
     forces not unique), by proximal-point iterations (Rockafellar 1976): round k solves
@@ -553,12 +554,14 @@ def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_R
     changes along W's null directions, where no force moves anything: rows the body
     cannot all meet exactly), when a round is unconverged, and after `rounds`. W that is
     not positive semi-definite (an indefinite step matrix, _positive) gets one solve of
-    the lifted W: its unshifted problem may have no bounded answer. Returns solve_coulomb's
-    (lambda, info) with info["proximal_rounds"]."""
+    the lifted W: its unshifted problem may have no bounded answer. definite: W is known
+    positive semi-definite (a Gram matrix Z^T Z from a Cholesky factor's half sweeps), so
+    that check is skipped. Returns solve_coulomb's (lambda, info) with
+    info["proximal_rounds"]."""
     m = len(g) // 3
     diag = max(float(np.mean(np.diag(W))), 1e-300)
     eps = (PROXIMAL_SHIFT if shift is None else shift) * diag
-    Ws, lifted = _positive(W, eps)
+    Ws, lifted = (W + eps * np.eye(len(W)), False) if definite else _positive(W, eps)
     if lifted:
         lam, info = solve_coulomb(Ws, g, mu, lam0=lam0, tol=tol)
         return lam, dict(info, proximal_rounds=1)
@@ -658,7 +661,7 @@ def frictional_correction(resolve, C, g, mu, regularize=0.0, tol=1e-12, max_roun
     info = {}
     for rounds in range(1, max_rounds + 1):
         if regularize > 0.0:
-            lam_w, info = solve_proximal(Wd, g_r, mu[work], lam0=guess, tol=tol)
+            lam_w, info = solve_proximal(Wd, g_r, mu[work], lam0=guess, tol=tol, definite=solves.definite)
         else:
             lam_w, info = solve_coulomb(_positive(Wd, 0.0)[0], g_r, mu[work], lam0=guess, tol=tol)
         corr = solves.correction(Y, lam_w.ravel())
@@ -733,12 +736,14 @@ def previous_match(previous, keys, n_colliders):
     if previous is None or "slip_speed" not in previous or len(previous["vertices"]) == 0:
         return None
     prev_keys = np.asarray(previous["vertices"]) * n_colliders + np.asarray(previous["which"])
-    order = np.argsort(prev_keys)
-    pos = np.clip(np.searchsorted(prev_keys, keys, sorter=order), 0, len(order) - 1)
-    found = prev_keys[order[pos]] == keys
+    # A key table (as unilateral.member): keys span about the mesh's vertices x colliders.
+    table = np.full(int(max(prev_keys.max(), keys.max(initial=0))) + 1, -1, dtype=np.int64)
+    table[prev_keys] = np.arange(len(prev_keys))
+    src = table[keys]
+    found = src >= 0
     if not found.any():
         return None
-    return found, order[pos[found]]
+    return found, src[found]
 
 
 def warm_start(previous, keys, tangents, n_colliders, match=None):
@@ -778,8 +783,10 @@ def collider_slip(contact, which, points, tangents):
     out = np.zeros((len(which), 2))
     starts = contact.get("starts") or [None] * len(contact["colliders"])
     for c_idx, (col, start) in enumerate(zip(contact["colliders"], starts)):
+        if start is None or (np.array_equal(start[0], col.position) and np.array_equal(start[1], col.orientation)):
+            continue                     # a collider that did not move drags nothing
         sel = np.flatnonzero(which == c_idx)
-        if sel.size and start is not None:
+        if sel.size:
             d = collider_displacement(col, start, points[sel])
             out[sel] = -np.einsum("kj,kij->ki", d, tangents[sel])
     return out

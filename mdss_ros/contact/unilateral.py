@@ -155,6 +155,9 @@ class Solves:
     under another residual compliance, residual_compliance.limit_dent). A reduced body
     with a Cholesky factor uses half sweeps instead (reduced/contact_rows.CholeskySolves)."""
 
+    #: Whether the Delassus blocks are positive semi-definite by their form (Gram matrices).
+    definite = False
+
     def __init__(self, resolve=None, keep=False):
         self._resolve = resolve
         self._kept = {} if keep else None

@@ -30,6 +30,8 @@ class CholeskySolves(Solves):
     and a backward sweep per row: 105 rows of three per contact at the caterpillar's
     friction at rest. The block is then symmetric positive semi-definite by its form."""
 
+    definite = True
+
     def __init__(self, factor, keep=False):
         super().__init__(keep=keep)
         self.factor = factor
