@@ -38,6 +38,15 @@ AUTO_KEYS = {"core_scale", "min_limb", "limb_segments", "max_bend"}
 #: max_bend (degrees): the largest bend a limb's domain is left to carry in the scene's
 #: training poses (bend_cuts.py); 0 turns the cuts from the scene's loads off.
 DEFAULTS = {"core_scale": 1.5, "min_limb": 1.0, "limb_segments": 1, "max_bend": 90.0}
+#: model.basis.extension of automatic domains when the scene gives neither basis.extension
+#: nor basis.layers (scene.model_config sets it; explicit counts and regions keep
+#: domains.build_subspace_domain's 0.5). Each domain's modes are computed on its region
+#: grown by about one diameter, so a limb's modes see the neighbour it hangs from: the
+#: cheapest remedy for the stiff interfaces measured (docs/verification.md, session 18:
+#: star_limbs' plain auto 2.62 -> 1.64 % RMS at the large load, 0.78 -> 0.44 % at the
+#: medium one; octopus -0.04 points, capped by basis.max_growth; a one-domain body
+#: unchanged; no build cost).
+AUTO_EXTENSION = 1.0
 
 
 def auto_settings(spec):
