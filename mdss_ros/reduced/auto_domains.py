@@ -37,8 +37,9 @@ from mdss_ros.reduced.bend_cuts import element_rotations, limb_cuts
 AUTO_KEYS = {"core_scale", "min_limb", "limb_segments", "max_bend"}
 #: max_bend (degrees): the largest bend a limb's domain is left to carry in the scene's
 #: training poses (bend_cuts.py); 0 turns the cuts from the scene's loads off.
-#: Off by default: every cut measured cost more than it gained, because each added
-#: interface stiffens the model more than a second frame and subspace relieve it
+#: Off by default: every cut measured cost more than it gained. An added interface
+#: stiffens the model more than a second frame and subspace relieve it, and a limb start
+#: moved into the core's root zone (a "cut" into one piece) lost accuracy too
 #: (docs/verification.md, session 19, at basis.extension 1.0). star_limbs with the load
 #: levels' loads as timeline: large (arm0 at 145 deg) 1.64 % RMS without cuts against
 #: 3.13 % at 90 deg and 3.65 % at 150 deg; medium 0.44 % against 0.73 % at 90 deg; small
