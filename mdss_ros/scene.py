@@ -545,13 +545,27 @@ def _check_model(model, source):
 
 def model_config(scene):
     """The `model` section a scene's model is built from: the file's, plus what the scene
-    implies. A collider's `reach` region (the part of the body it can touch) becomes a
-    full-space domain `<collider>_reach` of a reduced model (docs/method.md §12): contact
-    there is resolved on every vertex, the rest stays reduced. Returns a new dict."""
+    implies. Automatic domains (`model.domains: auto`) without basis.extension or
+    basis.layers get basis.extension auto_domains.AUTO_EXTENSION (1.0); the keys set so
+    are listed in model["implied"] ({key: why}). A collider's `reach` region (the part of
+    the body it can touch) becomes a full-space domain `<collider>_reach` of a reduced
+    model (docs/method.md §12): contact there is resolved on every vertex, the rest stays
+    reduced. Returns a new dict."""
     model = copy.deepcopy(scene["model"])
     if model["kind"] != "reduced":
         return model
-    regions = (model.get("domains") or {}).get("regions")
+    domains = model.get("domains") or {}
+    basis = model.get("basis") or {}
+    if "auto" in domains and "extension" not in basis and "layers" not in basis:
+        # Automatic domains take bases on regions grown by about one diameter
+        # (auto_domains.AUTO_EXTENSION; measured in docs/verification.md, sessions 18-19).
+        # Set here, not in domains.build_subspace_domain, so that counts and regions keep
+        # 0.5 and the bases' cache key holds the value used; `implied` tells --explain
+        # that the scene did not choose it.
+        from .reduced.auto_domains import AUTO_EXTENSION
+        model["basis"] = dict(basis, extension=AUTO_EXTENSION)
+        model.setdefault("implied", {})["basis.extension"] = "the default for model.domains: auto"
+    regions = domains.get("regions")
     if isinstance(regions, dict):
         # The first region to select a vertex wins, so their order is an input of the
         # partition; cache keys sort dict keys, so the order is also kept as a list.

@@ -91,6 +91,27 @@ def test_scene_key_and_bad_settings():
         domain_labels("automatic", np.zeros((4, 3)), np.array([[0, 1, 2, 3]]))
 
 
+def test_automatic_domains_default_to_bases_grown_by_one_diameter():
+    """scene.model_config: `domains: auto` without basis.extension or basis.layers takes
+    auto_domains.AUTO_EXTENSION (1.0) and says so in model["implied"]; a scene's own
+    extension or layers, and counts or regions, are left alone (0.5 from domains.py)."""
+    from mdss_ros.reduced.auto_domains import AUTO_EXTENSION
+    from mdss_ros.scene import model_config
+
+    def cfg(model):
+        return model_config(load_scene(star3(dict({"kind": "reduced"}, **model))))
+
+    auto = cfg({"domains": "auto", "basis": {"modes": {"core": 8}}})
+    assert AUTO_EXTENSION == 1.0
+    assert auto["basis"] == {"modes": {"core": 8}, "extension": 1.0}
+    assert "domains: auto" in auto["implied"]["basis.extension"]
+    for model, basis in [({"domains": "auto", "basis": {"extension": 0.5}}, {"extension": 0.5}),
+                         ({"domains": "auto", "basis": {"layers": 2}}, {"layers": 2}),
+                         ({"domains": {"count": 2}}, {})]:
+        out = cfg(model)
+        assert out["basis"] == basis and "implied" not in out, (model, out)
+
+
 def test_a_limbed_body_with_auto_domains_builds_explains_and_steps():
     """A small voxel star (a hub and three arms): the reduced model takes the auto domains,
     explains where they came from, and steps under gravity with the hub clamped."""
@@ -99,6 +120,7 @@ def test_a_limbed_body_with_auto_domains_builds_explains_and_steps():
     assert sim.model.partition.names == ["core", "limb0", "limb1", "limb2"]
     text = "\n".join(sim.explain())
     assert "model.domains: auto" in text and "limb2:" in text
+    assert "model.basis.extension 1: the default for model.domains: auto" in text, text
     x0 = sim.vertex_positions().copy()
     sim.step(3)
     x = sim.vertex_positions()

@@ -18,9 +18,11 @@ from scipy.sparse import csgraph
 from small_bodies import star3
 
 TIPS = {"tip_x": {"box": [[0.34, -1, -1], [1, 1, 1]]}, "tip_y": {"box": [[-1, 0.34, -1], [1, 1, 1]]}}
+# The cuts are off by default (auto_domains.DEFAULTS: max_bend 0); these tests ask for them.
+CUTS = {"auto": {"max_bend": 90}}
 
 
-def _star(force_x=None, domains="auto", **scene):
+def _star(force_x=None, domains=CUTS, **scene):
     timeline = [] if force_x is None else [{"t": 0.1, "topic": "wrench", "frame_id": "tip_x", "force": force_x}]
     return load_scene(star3({"kind": "reduced", "domains": domains}, handles=TIPS, timeline=timeline, **scene))
 
@@ -73,7 +75,7 @@ def test_greedy_cuts_leave_the_core_its_share_and_balance_the_rest():
 
 
 def test_training_load_cases_follow_the_timeline_and_the_colliders():
-    scene = load_scene(star3({"kind": "reduced", "domains": "auto"}, handles=TIPS, colliders={
+    scene = load_scene(star3({"kind": "reduced", "domains": CUTS}, handles=TIPS, colliders={
         "ball": {"shape": "sphere", "radius": 0.05, "position": [0.2, 0, 0.3]}}, timeline=[
         {"t": 0.1, "topic": "wrench", "frame_id": "tip_x", "force": [0, 0, 5]},
         {"t": 0.3, "topic": "wrench", "frame_id": "tip_y", "force": [1, 0, 0]},
@@ -122,17 +124,24 @@ def test_a_limb_the_loads_bend_far_is_cut_where_it_bends_and_the_rest_stay_whole
     # max_bend 0 turns the cuts off.
     _, off, off_names, _ = _partition(_star(force_x=[-200.0, 0.0, 100.0], domains={"auto": {"max_bend": 0}}))
     assert off_names == plain_names and np.array_equal(off, plain)
+    # So does the default: plain `domains: auto` builds no training poses and cuts nothing.
+    scene = _star(force_x=[-200.0, 0.0, 100.0], domains="auto")
+    assert training_load_cases(scene, build_body(scene), model_config(scene)) is None
+    _, dflt, dflt_names, _ = _partition(scene)
+    assert dflt_names == plain_names and np.array_equal(dflt, plain)
 
 
 def test_the_loads_that_place_cuts_are_in_the_bases_key():
     keys = {}
     for label, force in (("none", None), ("a", [0.0, 0.0, 5.0]), ("b", [0.0, 0.0, 6.0])):
-        for domains in ("auto", {"count": 2}):
+        for kind, domains in (("cuts", CUTS), ("auto", "auto"), ("count", {"count": 2})):
             scene = _star(force_x=force, domains=domains)
             body, model = build_body(scene), model_config(scene)
-            keys[label, str(domains)] = bases_cache_key(body, model, training_load_cases(scene, body, model))
-    assert len({keys[k, "auto"] for k in ("none", "a", "b")}) == 3
-    assert len({keys[k, "{'count': 2}"] for k in ("none", "a", "b")}) == 1
+            keys[label, kind] = bases_cache_key(body, model, training_load_cases(scene, body, model))
+    assert len({keys[k, "cuts"] for k in ("none", "a", "b")}) == 3
+    # Without cuts (a count, or auto at its default max_bend 0) the loads place nothing.
+    assert len({keys[k, "auto"] for k in ("none", "a", "b")}) == 1
+    assert len({keys[k, "count"] for k in ("none", "a", "b")}) == 1
 
 
 def _beam(force, max_bend=90):
@@ -165,13 +174,14 @@ def test_a_body_without_limbs_is_cut_from_its_root_where_the_loads_bend_it():
 def test_a_free_block_that_the_loads_move_whole_is_one_domain_without_warnings():
     # Issue 18's incline block: free, under gravity only. Its training pose moves it as a
     # whole, so every tet is its calmest part and the distance along it is zero everywhere
-    # (a 0 / 0 band width gave NaN bands and numpy warnings before).
+    # (a 0 / 0 band width gave NaN bands and numpy warnings before). The block's automatic
+    # model no longer asks for cuts by default; the cuts are asked for here.
     import warnings
     scene = load_scene({"name": "block", "body": {
         "mesh": {"generator": "box", "size": [0.10, 0.08, 0.04], "cell": 0.02},
         "material": {"model": "neohookean", "young": 2e5, "poisson": 0.3, "density": 1000}},
         "colliders": {"floor": {"shape": "plane"}}, "gravity": [3.36, 0.0, -9.22],
-        "model": {"kind": "reduced", "domains": "auto"}})
+        "model": {"kind": "reduced", "domains": CUTS}})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _, labels, names, notes = _partition(scene)

@@ -37,7 +37,25 @@ from mdss_ros.reduced.bend_cuts import element_rotations, limb_cuts
 AUTO_KEYS = {"core_scale", "min_limb", "limb_segments", "max_bend"}
 #: max_bend (degrees): the largest bend a limb's domain is left to carry in the scene's
 #: training poses (bend_cuts.py); 0 turns the cuts from the scene's loads off.
-DEFAULTS = {"core_scale": 1.5, "min_limb": 1.0, "limb_segments": 1, "max_bend": 90.0}
+#: Off by default: every cut measured cost more than it gained. An added interface
+#: stiffens the model more than a second frame and subspace relieve it, and a limb start
+#: moved into the core's root zone (a "cut" into one piece) lost accuracy too
+#: (docs/verification.md, session 19, at basis.extension 1.0). star_limbs with the load
+#: levels' loads as timeline: large (arm0 at 145 deg) 1.64 % RMS without cuts against
+#: 3.13 % at 90 deg and 3.65 % at 150 deg; medium 0.44 % against 0.73 % at 90 deg; small
+#: no cut at any angle. A clamped beam bent 153 deg: 9.5 % in one domain, 17.7 % cut at
+#: 90 deg. Off, the build also skips the training poses' nonlinear statics. A scene that
+#: wants the cuts sets max_bend itself.
+DEFAULTS = {"core_scale": 1.5, "min_limb": 1.0, "limb_segments": 1, "max_bend": 0.0}
+#: model.basis.extension of automatic domains when the scene gives neither basis.extension
+#: nor basis.layers (scene.model_config sets it; explicit counts and regions keep
+#: domains.build_subspace_domain's 0.5). Each domain's modes are computed on its region
+#: grown by about one diameter, so a limb's modes see the neighbour it hangs from: the
+#: cheapest remedy for the stiff interfaces measured (docs/verification.md, session 18:
+#: star_limbs' plain auto 2.62 -> 1.64 % RMS at the large load, 0.78 -> 0.44 % at the
+#: medium one; octopus -0.04 points, capped by basis.max_growth; a one-domain body
+#: unchanged; no build cost).
+AUTO_EXTENSION = 1.0
 
 
 def auto_settings(spec):
@@ -113,7 +131,7 @@ def _core_radius(graph, d, T, core_scale, min_limb):
     return best
 
 
-def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segments=1, max_bend=90.0,
+def auto_domains(vertices, tets, graph, core_scale=1.5, min_limb=1.0, limb_segments=1, max_bend=0.0,
                  poses=None):
     """Core and limb domains of a body.
 

@@ -157,6 +157,11 @@ def _main_face_piece(tets, vertices_of_domain, n_verts):
     return tets[piece == int(np.argmax(score))]
 
 
+#: model.basis.extension when the scene gives none (automatic domains: scene.model_config
+#: sets auto_domains.AUTO_EXTENSION instead).
+EXTENSION = 0.5
+
+
 def layers_for_extension(X, tets, verts, extension):
     """Element rings that grow a domain by about extension x its diameter (at least 1)."""
     diameter = float(np.linalg.norm(X[verts].max(0) - X[verts].min(0)))
@@ -173,7 +178,7 @@ def build_subspace_domain(index, name, body, vertex_mass, verts, elements, r, ba
     X = body.vertices
     basis_opts = dict(basis_opts)
     complete = basis_opts.pop("complete", False)
-    extension = float(basis_opts.pop("extension", 0.5))
+    extension = float(basis_opts.pop("extension", EXTENSION))
     layers = basis_opts.pop("layers", None)
     if layers is None:
         layers = layers_for_extension(X, body.tets[elements] if len(elements) else body.tets, verts, extension)

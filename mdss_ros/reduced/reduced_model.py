@@ -699,6 +699,7 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
             elems = (f"cubature {c['samples']} of {c['elements']} elements" if c
                      else f"exact forces over all {len(self.partition.domain_elements[i])} elements")
             lines.append(f"{head}; r = {dom.r} modes; {rigid}; {elems}")
+        lines.append(self._basis_region_line())
         if not self.full:
             lines.append("full-space domains: none (model.full_space_domains is empty)")
         n_c = len(self.partition.coupling_elements)
@@ -746,6 +747,24 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         if self.interface_modes_note is not None:
             lines.append(f"bases: {self.interface_modes_note} (model.basis.interface_modes; docs/method.md §6.3)")
         return lines
+
+    def _basis_region_line(self):
+        """explain(): the region each domain's modes were computed on, and where its
+        size came from (the scene, the default, or the default of automatic domains)."""
+        from .domains import EXTENSION
+        basis = self.cfg.get("basis") or {}
+        why = (self.cfg.get("implied") or {}).get("basis.extension")
+        if "layers" in basis:
+            grown = f"{basis['layers']} element rings (model.basis.layers)"
+        else:
+            ext = basis.get("extension", EXTENSION)
+            grown = (f"about {ext:g} x its diameter (model.basis.extension {ext:g}: "
+                     + (why or ("the scene's" if "extension" in basis else "the default")) + ")")
+        rings = ", ".join(f"{d.name} +{d.basis_info.get('layers', '?')}"
+                          + (f" ({d.basis_info['region_vertices']} vertices)" if "region_vertices" in d.basis_info
+                             else "") for d in self.subspace)
+        return (f"bases: each domain's modes computed on its region grown by {grown}, the region capped "
+                f"by model.basis.max_growth, then restricted to the domain; rings: {rings}")
 
     def cut_elements(self, tet_ids):
         """Remove elements of full-space domains (cutting); returns how many were removed."""

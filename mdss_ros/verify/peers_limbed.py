@@ -783,10 +783,12 @@ def one_domain(r):
 INTERFACE_ROW = ("per-limb domains, +10 interface modes", {"model.basis.interface_modes": 10})
 # Automatic domains (reduced/auto_domains.py) with the level's loads as the scene's timeline,
 # so that its cuts fall where those loads bend the limbs (reduced/bend_cuts.py). The core
-# takes the hub's 30 modes.
+# takes the hub's 30 modes. Session 17's row: the cuts at max_bend 90 and the bases at
+# extension 0.5, given here since neither is the default any more (session 19: no cuts,
+# extension 1.0 for automatic domains; AUTO_DEFAULT_ROW).
 LEVEL_TIMELINE = "the level's loads"
-AUTO_ROW = ("automatic domains, cut where the loads bend", {"model.domains": {"auto": True},
-                                                             "model.basis": {"modes": {"core": 30}},
+AUTO_ROW = ("automatic domains, cut where the loads bend", {"model.domains": {"auto": {"max_bend": 90}},
+                                                             "model.basis": {"modes": {"core": 30}, "extension": 0.5},
                                                              "timeline": LEVEL_TIMELINE})
 # Session 18 (docs/verification.md, "Session 18"): at the large level the interfaces, not
 # the cubature, stiffen the automatic model (exact forces: 3.26 % RMS, as with cubature;
@@ -805,8 +807,12 @@ AUTO_CUBATURE = {"model.cubature": {"samples": 150, "tolerance": 0.005, "interfa
 AUTO_TARGET_ROW = ("automatic domains, samples to a 0.5 % error target", dict(AUTO_ROW[1], **AUTO_CUBATURE))
 AUTO_GROWN_ROW = ("automatic domains, samples to 0.5 %, bases on regions grown by one diameter",
                   dict(AUTO_TARGET_ROW[1], **{"model.basis": {"modes": {"core": 30}, "extension": 1.0}}))
-OURS_LEVELS = OURS + [INTERFACE_ROW, AUTO_ROW, AUTO_TARGET_ROW, AUTO_GROWN_ROW, ("1 domain, r = 40", one_domain(40)),
-                      ("1 domain, r = 60", one_domain(60))]
+# What `domains: auto` gives by default since session 19 (no cuts, bases at extension 1.0),
+# with the core's 30 modes and the sample target: docs/verification.md, session 19.
+AUTO_DEFAULT_ROW = ("automatic domains, the defaults (no cuts, extension 1.0), samples to 0.5 %",
+                    dict({"model.domains": {"auto": True}, "model.basis": {"modes": {"core": 30}}}, **AUTO_CUBATURE))
+OURS_LEVELS = OURS + [INTERFACE_ROW, AUTO_ROW, AUTO_TARGET_ROW, AUTO_GROWN_ROW, AUTO_DEFAULT_ROW,
+                      ("1 domain, r = 40", one_domain(40)), ("1 domain, r = 60", one_domain(60))]
 # Quick (CI): exact cubature, so that the cold builds skip the cubature training (~30 s of a
 # 53 s quick run otherwise); in the full run the per-limb exact row's RMS error is within
 # 0.03 points of the scene config's at every level.
