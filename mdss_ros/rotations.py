@@ -82,9 +82,18 @@ def _exp_so3_kernel(w, out):
 
 
 def orthonormalise_batch(R):
-    """The nearest rotations U V^T of a stack R (n, 3, 3) (polar factor by SVD)."""
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+    """The nearest rotations of a stack R (n, 3, 3) of nearly orthonormal matrices (products
+    of rotations, off by round-off): one Bjorck step X (3 I - X^T X) / 2, which takes an
+    orthonormality error e to O(e^2) and converges to the polar factor U V^T. A batched
+    SVD cost 13 us a frame in every reduced step (0.08 ms of star_limbs' 1.3 ms); its answer
+    and this one agree to round-off for the errors a step leaves (test_rotations). A stack
+    off by more than 1e-6 (not a step's product) takes the SVD."""
+    R = np.asarray(R, dtype=np.float64)
+    RtR = R.transpose(0, 2, 1) @ R
+    if not np.abs(RtR - np.eye(3)).max(initial=0.0) <= 1e-6:       # far off (or NaN): the SVD
+        U, _, Vt = np.linalg.svd(R)
+        return U @ Vt
+    return 1.5 * R - 0.5 * R @ RtR
 
 
 def cross(a, b):
