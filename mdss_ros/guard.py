@@ -103,6 +103,7 @@ ENERGY_SIGNS = frozenset(("energy", "energy drift"))
 #: The ladder's rung for the model's own step: one sub-step, its own Newton iterations and
 #: fictitious forces, no energy projection (StabilityGuard._ladder, _own_step).
 OWN_RUNG = (1, None, False, False)
+_NEG_INF = float("-inf")
 #: The report of a step whose own step passed (StabilityGuard._stable), in _step's key
 #: order; energy_growth and guard_work are placeholders, the totals and guard_last_event
 #: follow.
@@ -299,8 +300,10 @@ class StabilityGuard:
             # passes leaving nothing inverted, reported by _stable without _walk.
             stats, after, signs = self._own_step(advance, before, f_app, gravity)
             if signs is not None and not signs[0] and not signs[1] and not after.inverted:
-                # max(-inf, growth): the Verdict's growth, as _own_verdict makes it (NaN -> -inf).
-                return stats, self._stable(stats, max(-np.inf, signs[2]), after, step_count)
+                # max(-inf, growth): the Verdict's growth, as _own_verdict makes it (NaN -> -inf),
+                # written as the comparison max makes.
+                growth = signs[2]
+                return stats, self._stable(stats, growth if growth > _NEG_INF else _NEG_INF, after, step_count)
             first = (stats, _own_verdict(signs, after), after)
         attempt, best, stats, verdict, after, first_reason = self._walk(ladder, advance, save, restore, snap,
                                                                         before, f_app, gravity, dt, first)
@@ -394,9 +397,9 @@ class StabilityGuard:
             W += work
             # _run_scale(after, W), spelled out (_signs has set the floor)
             floor = self._floor if self._floor is not None else self._scale_floor(self._gravity)
-            elastic = after.elastic                     # max(elastic, 0.0) as in _signs
-            self._ledger = (E0, W, max(run_scale, after.kinetic + (0.0 if 0.0 > elastic else elastic) + abs(W)
-                                       + abs(after.gravity - self._G0) + floor))
+            elastic = after.elastic                     # max(a, b) as in _signs: b if b > a else a
+            scale = after.kinetic + (0.0 if 0.0 > elastic else elastic) + abs(W) + abs(after.gravity - self._G0) + floor
+            self._ledger = (E0, W, scale if scale > run_scale else run_scale)
         # A copy of the constant part, then the step's values into its placeholders (a
         # dict display of eight keys and update(..., key=) cost more, every step).
         report = _STABLE_REPORT.copy()

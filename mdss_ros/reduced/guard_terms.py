@@ -9,7 +9,7 @@ docs/method.md §15).
   largest s in [0, 1] (bisection) that leaves no inverted element.
 """
 
-import math
+from math import isfinite
 
 import numpy as np
 
@@ -55,9 +55,7 @@ class GuardTerms:
         ok, kinetic, grav, speed = frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, pack[2], g)
         # x_full / v_full hold every vertex but only full-space rows are state: checking
         # them on a model without full-space domains was a third of this measure.
-        finite = bool(ok) and (not self.F or (np.isfinite(self.x_full).all()
-                                              and np.isfinite(self.v_full).all()))
-        if not finite:
+        if not ok or (self.F and not (np.isfinite(self.x_full).all() and np.isfinite(self.v_full).all())):
             return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
         if self.F:
             m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
@@ -80,8 +78,7 @@ class GuardTerms:
         else:
             inverted = self._guard_inverted()
         # Spelled out, not all() over a generator: this runs after every step.
-        finite = (math.isfinite(kinetic) and math.isfinite(elastic) and math.isfinite(grav)
-                  and math.isfinite(speed))
+        finite = isfinite(kinetic) and isfinite(elastic) and isfinite(grav) and isfinite(speed)
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed)
 
     def mean_motion(self):
