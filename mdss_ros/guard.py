@@ -103,6 +103,7 @@ ENERGY_SIGNS = frozenset(("energy", "energy drift"))
 #: The ladder's rung for the model's own step: one sub-step, its own Newton iterations and
 #: fictitious forces, no energy projection (StabilityGuard._ladder, _own_step).
 OWN_RUNG = (1, None, False, False)
+_NEG_INF = float("-inf")
 #: The report of a step whose own step passed (StabilityGuard._stable), in _step's key
 #: order; energy_growth and guard_work are placeholders, the totals and guard_last_event
 #: follow.
@@ -204,7 +205,9 @@ class StabilityGuard:
         b_kinetic, b_elastic, b_gravity = before.kinetic, before.elastic, before.gravity
         a_elastic, a_gravity = after.elastic, after.gravity
         a_total = after.kinetic + a_elastic + a_gravity
-        scale = b_kinetic + max(b_elastic, 0.0) + abs(work) + abs(a_gravity - b_gravity) + floor
+        # max(x, 0.0) written as max evaluates it (it keeps x unless 0.0 > x: the same float
+        # for NaN and -0.0), without the builtin call.
+        scale = b_kinetic + (0.0 if 0.0 > b_elastic else b_elastic) + abs(work) + abs(a_gravity - b_gravity) + floor
         growth = (a_total - (b_kinetic + b_elastic + b_gravity) - work) / scale
         if growth > s.energy_growth:
             hard = ("energy",)
@@ -212,7 +215,7 @@ class StabilityGuard:
             # Slow creation: each step under the bound, the run's total over it.
             E0, W, run_scale = self._ledger
             run_work = W + self._work + work
-            run_scale = max(run_scale, after.kinetic + max(a_elastic, 0.0) + abs(run_work)
+            run_scale = max(run_scale, after.kinetic + (0.0 if 0.0 > a_elastic else a_elastic) + abs(run_work)
                             + abs(a_gravity - self._G0) + floor)          # _run_scale(after, run_work)
             if (a_total - E0 - W - self._work - work) / run_scale > s.energy_growth:
                 hard = ("energy drift",)
@@ -287,15 +290,20 @@ class StabilityGuard:
         before = c[1] if c is not None and c[0] == step_count and self._ledger is not None else \
             self._current(gravity, step_count)
         snap = save()
-        ladder = self._ladder()
+        # _ladder's cache read inline (its key is what a step may not change; checked every step).
+        model = self.model
+        lf = self._ladder_for
+        ladder = lf[1] if lf is not None and lf[0] == (model.newton_iterations, model.fictitious) else self._ladder()
         first = None
         if ladder[0] == OWN_RUNG:
             # The model's own step, run every step: judged without a Verdict, and when it
             # passes leaving nothing inverted, reported by _stable without _walk.
             stats, after, signs = self._own_step(advance, before, f_app, gravity)
             if signs is not None and not signs[0] and not signs[1] and not after.inverted:
-                # max(-inf, growth): the Verdict's growth, as _own_verdict makes it (NaN -> -inf).
-                return stats, self._stable(stats, max(-np.inf, signs[2]), after, step_count)
+                # max(-inf, growth): the Verdict's growth, as _own_verdict makes it (NaN -> -inf),
+                # written as the comparison max makes.
+                growth = signs[2]
+                return stats, self._stable(stats, growth if growth > _NEG_INF else _NEG_INF, after, step_count)
             first = (stats, _own_verdict(signs, after), after)
         attempt, best, stats, verdict, after, first_reason = self._walk(ladder, advance, save, restore, snap,
                                                                         before, f_app, gravity, dt, first)
@@ -389,8 +397,9 @@ class StabilityGuard:
             W += work
             # _run_scale(after, W), spelled out (_signs has set the floor)
             floor = self._floor if self._floor is not None else self._scale_floor(self._gravity)
-            self._ledger = (E0, W, max(run_scale, after.kinetic + max(after.elastic, 0.0) + abs(W)
-                                       + abs(after.gravity - self._G0) + floor))
+            elastic = after.elastic                     # max(a, b) as in _signs: b if b > a else a
+            scale = after.kinetic + (0.0 if 0.0 > elastic else elastic) + abs(W) + abs(after.gravity - self._G0) + floor
+            self._ledger = (E0, W, scale if scale > run_scale else run_scale)
         # A copy of the constant part, then the step's values into its placeholders (a
         # dict display of eight keys and update(..., key=) cost more, every step).
         report = _STABLE_REPORT.copy()

@@ -5,6 +5,7 @@ them into per-vertex external forces each step, and delegates the dynamics to th
 model the scene asks for. Nothing here imports rclpy.
 """
 import time
+from types import MappingProxyType
 
 import numpy as np
 
@@ -16,6 +17,10 @@ from .model_build import build_model
 from .scene import Scene, load_scene
 from .step_options import StepOptions
 from .threads import BlasThreads
+
+#: The collider part of a snapshot of a Simulator without colliders (Simulator._save):
+#: no sweep starts, no poses. Read-only, so every snapshot may share it.
+_NO_SWEEP = MappingProxyType({})
 
 
 class Simulator:
@@ -291,7 +296,8 @@ class Simulator:
         Only the guard saves, to roll back steps, so the model may share what its steps
         replace rather than copy it (get_state(share=True))."""
         if not self.colliders:             # every step: no sweep bookkeeping (_collider_start is {})
-            return self.model.get_state(share=True), {}, {}
+            # _NO_SWEEP: two empty mappings made once (_restore only reads them).
+            return self.model.get_state(share=True), _NO_SWEEP, _NO_SWEEP
         return (self.model.get_state(share=True), dict(self._collider_start),
                 {name: (c.position.copy(), c.orientation.copy()) for name, c in self.colliders.items()})
 

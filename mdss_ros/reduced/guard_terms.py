@@ -9,20 +9,22 @@ docs/method.md §15).
   largest s in [0, 1] (bisection) that leaves no inverted element.
 """
 
-import math
+from math import isfinite
 
 import numpy as np
 
 from ..state_measure import Measure, inverted_tets
-from .measure import frame_measure, measure_pack
+from .measure import count_not_positive, frame_measure, measure_pack
 
 
 class GuardTerms:
     """The stability guard's measure, energy projection and untangle on a reduced state. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
 
-    #: (layout, measure.measure_pack(layout)), built on the first measure (the constants
-    #: frame_measure reads; keyed on the layout object, which a model builds once).
+    #: (layout, samples, measure.measure_pack(layout), sample det buffers or None), built on
+    #: the first measure: the constants frame_measure reads, and the (det, valid) arrays of
+    #: every sample stack when inverted elements are counted from those alone
+    #: (_inversion_buffers). Keyed on the layout and samples objects, which a build makes once.
     _guard_pack = None
 
     def kinetic_energy(self):
@@ -44,17 +46,16 @@ class GuardTerms:
         g = np.asarray(gravity, dtype=np.float64)
         fr = self.frames
         pack = self._guard_pack
-        if pack is None or pack[0] is not self.layout:
-            pack = self._guard_pack = (self.layout, measure_pack(self.layout))
+        if pack is None or pack[0] is not self.layout or pack[1] is not self.samples:
+            pack = self._guard_pack = (self.layout, self.samples, measure_pack(self.layout),
+                                       self._inversion_buffers())
         # The layout's constants in one array and the result as a tuple of Python floats:
         # the call with 18 arguments, an out array and tolist() was the measure's largest
         # piece beside the elastic evaluation.
-        ok, kinetic, grav, speed = frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, pack[1], g)
+        ok, kinetic, grav, speed = frame_measure(self.q, self.qd, fr.c, fr.R, fr.v, fr.w, pack[2], g)
         # x_full / v_full hold every vertex but only full-space rows are state: checking
         # them on a model without full-space domains was a third of this measure.
-        finite = bool(ok) and (not self.F or (np.isfinite(self.x_full).all()
-                                              and np.isfinite(self.v_full).all()))
-        if not finite:
+        if not ok or (self.F and not (np.isfinite(self.x_full).all() and np.isfinite(self.v_full).all())):
             return Measure(None, None, np.nan, np.nan, np.nan, 0, False, speed=np.inf)
         if self.F:
             m = np.where(self.is_full_vertex, self.vertex_mass, 0.0)
@@ -65,10 +66,19 @@ class GuardTerms:
             elastic = float(self.elastic_energy())
         except (ArithmeticError, ValueError, RuntimeError):
             elastic = np.nan
-        inverted = self._guard_inverted() if check_inversion else 0
+        if not check_inversion:
+            inverted = 0
+        elif pack[3] is not None and self.samples.det_at is self.q:
+            # _guard_inverted's answer read straight from the det F buffers of the evaluation
+            # just made at q (by elastic_energy above): the calls around the count were most
+            # of its cost, after every step.
+            inverted = 0
+            for det, valid in pack[3]:
+                inverted += count_not_positive(det, valid)
+        else:
+            inverted = self._guard_inverted()
         # Spelled out, not all() over a generator: this runs after every step.
-        finite = (math.isfinite(kinetic) and math.isfinite(elastic) and math.isfinite(grav)
-                  and math.isfinite(speed))
+        finite = isfinite(kinetic) and isfinite(elastic) and isfinite(grav) and isfinite(speed)
         return Measure(None, None, kinetic, elastic, grav, inverted, finite, speed)
 
     def mean_motion(self):
@@ -175,6 +185,22 @@ class GuardTerms:
         if x_I is not None and len(self.c_elem):
             n += inverted_tets(x_I, self.c_elem)
         return n
+
+    def _inversion_buffers(self):
+        """((det, valid), ...) per sample stack when _guard_inverted counts cubature samples
+        only and reads them from the last evaluation's det F (StackedSamples.inverted_count's
+        first case), else None. That is: a model whose forces sample cubature points only
+        (no full-space domain, no coupling element), every real sample with a weight (a
+        zero-weight sample is skipped by the kernel, its det F not formed: StackedSamples
+        then forms F again). The buffers are the stacks' own, written in place by every
+        evaluation."""
+        samples = self.samples
+        if samples is None or self.F or len(self.c_elem):
+            return None
+        stacks = [st for _, st in samples.stacks]
+        if any(np.any(st.valid & (st.wV == 0.0)) for st in stacks):
+            return None
+        return tuple((st.det, st.valid) for st in stacks)
 
     def _guard_tets(self, coupling=True):
         """(vertex ids (k,), tets (m, 4) into them) the guard checks for

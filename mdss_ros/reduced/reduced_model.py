@@ -515,8 +515,10 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         a 12-DOF model."""
         if share:
             fr = self.frames           # a new FrameState: a projection replaces its arrays
+            # _full_rows inlined (two calls a step): rows without full-space domains are shared.
+            x_full, v_full = (self.x_full.copy(), self.v_full.copy()) if self.F else (self.x_full, self.v_full)
             return {"q": self.q, "qd": self.qd, "frames": FrameState(fr.c, fr.R, fr.v, fr.w, fr.w_prev),
-                    "x_full": self._full_rows(self.x_full), "v_full": self._full_rows(self.v_full),
+                    "x_full": x_full, "v_full": v_full,
                     "last": self.last, "contact": self.contact, "stats": self.stats,
                     "contact_history": self._contact_history, "dent": self._dent}
         return {"q": self.q.copy(), "qd": self.qd.copy(),
