@@ -51,8 +51,9 @@ class FrictionalRows:
     §14.1) for one step's m candidates, whose tangential rows are built for the contacts
     that ask for them: the Coulomb solve (friction.frictional_correction) reads every
     contact's normal row, for its gap, but the tangential rows of its working set only,
-    a few dozen of the caterpillar's 800 floor candidates. Building three rows for every
-    candidate, with their tangents and collider slips, was 0.4 ms of a 5 ms step at rest.
+    a few dozen of the caterpillar's 814 floor candidates. Building three rows for every
+    candidate, with their tangents and collider slips, took the caterpillar's rows at rest
+    0.64 ms against 0.48 now (min of 300 calls, docs/performance.md "Session 19").
 
     C (m, n_gen) the normal rows (sparse_rows.ContactRowEntries, or CSR beside full-space
     domains), g_n (m,) their constant part (phi_eff); mu (m,); corners: (vertex ids,
@@ -80,8 +81,9 @@ class FrictionalRows:
         self.guess = None
 
     def ensure(self, contacts, tangents=None):
-        """Build the rows of those of contacts (k,) not yet built; tangents (m, 2, 3): every
-        contact's, when already had (else friction.tangent_basis of their normals)."""
+        """Build the rows of those of contacts (k,) (distinct indices) not yet built;
+        tangents (m, 2, 3): every contact's, when already had (else friction.tangent_basis
+        of their normals)."""
         from ..contact.friction import collider_slip, tangent_basis
         new = contacts[self.slot[contacts] < 0]
         if new.size == 0:
@@ -113,8 +115,9 @@ class FrictionalRows:
         self.g3[new, 1:] = g_t
 
     def _rows(self, contacts):
-        """(rows (3k, n_gen) dense or CSR, the same as entries or CSR for products) of
-        built contacts (k,)."""
+        """The rows n, t1, t2 of built contacts (k,) twice: for the solves (dense (3k, n_gen),
+        or CSR beside full-space domains) and for products (ContactRowEntries, or the same
+        CSR)."""
         r = (3 * self.slot[contacts][:, None] + np.arange(3)).ravel()
         if isinstance(self.rows3, ContactRowEntries):
             return self.rows3[r], self.rows3.take(r)
