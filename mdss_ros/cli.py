@@ -225,6 +225,10 @@ def cmd_bench(args):
     t0 = time.perf_counter()
     sim = _make_sim(args)
     build_s = time.perf_counter() - t0
+    # As a node or `mdss run` does before its first step (threads.preload_kernels): a kernel first
+    # called mid-run (the first contact's) is not loaded inside a timed step.
+    from .threads import preload_kernels
+    preload_kernels()
     load_before = os.getloadavg()[0]
     from .timeline import TimelinePlayer
     player = TimelinePlayer(sim.scene["timeline"])

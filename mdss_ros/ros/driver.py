@@ -390,7 +390,11 @@ class Driver:
 
     # ------------------------------------------------------------------ stepping, outputs
     def start(self):
-        """The topology (once) and the state at t = 0."""
+        """The topology (once) and the state at t = 0; the process's compiled kernels
+        loaded from numba's cache first (threads.preload_kernels), so that no step of the run, the
+        first contact's included, waits for one."""
+        from ..threads import preload_kernels
+        preload_kernels()
         for out in self.outputs.topology():
             self.emit(out, _ns(self.offset + out.stamp_s), False)
         self._emit_state(None)
