@@ -15,7 +15,7 @@ domains make n_gen large.
 import numpy as np
 import scipy.sparse as sp
 
-from ..contact.friction import FrictionRows
+from ..contact.friction import FrictionRows, rows_of
 from ..contact.unilateral import Solves, member
 from ..rotations import cross
 from .residual_compliance import limit_dent
@@ -118,7 +118,7 @@ class FrictionalRows:
         """The rows n, t1, t2 of built contacts (k,) twice: for the solves (dense (3k, n_gen),
         or CSR beside full-space domains) and for products (ContactRowEntries, or the same
         CSR)."""
-        r = (3 * self.slot[contacts][:, None] + np.arange(3)).ravel()
+        r = rows_of(self.slot[contacts])
         if isinstance(self.rows3, ContactRowEntries):
             return self.rows3[r], self.rows3.take(r)
         rows = self.rows3[r]
