@@ -606,32 +606,38 @@ def neohookean_point_ws(F, mu, lam, P_out, dPdF_out, want_hessian, project, work
     # Without the integer division and branches per entry of the loop over (r, c) this
     # replaces: a point with its Hessian took 295 ns, and 173 ns so (one thread, a loop of
     # 1M points, session 13), with the same bits.
+    # vec(cof F) and vec(F) live in the scratch at offsets _O_A and _O_T (the barrier's
+    # slot: it runs after this), indexed there rather than through slices of it: a slice
+    # is a new array view whose reference count numba raises and lowers atomically, and
+    # the two views made this point cost 111 ns instead of 36 without its Hessian (one
+    # thread, 2,500 points, session 20), with the same bits.
     mup, lamp, alpha, psi0 = snh_parameters(mu, lam)
     F00, F01, F02 = F[0, 0], F[0, 1], F[0, 2]
     F10, F11, F12 = F[1, 0], F[1, 1], F[1, 2]
     F20, F21, F22 = F[2, 0], F[2, 1], F[2, 2]
-    a = work[_O_A:_O_A + 9]                  # vec(cof F): rows are cross products of rows of F
-    a[0] = F11 * F22 - F12 * F21
-    a[1] = F12 * F20 - F10 * F22
-    a[2] = F10 * F21 - F11 * F20
-    a[3] = F21 * F02 - F22 * F01
-    a[4] = F22 * F00 - F20 * F02
-    a[5] = F20 * F01 - F21 * F00
-    a[6] = F01 * F12 - F02 * F11
-    a[7] = F02 * F10 - F00 * F12
-    a[8] = F00 * F11 - F01 * F10
-    J = F00 * a[0] + F01 * a[1] + F02 * a[2]
-    f = work[_O_T:_O_T + 9]                  # vec(F) (the barrier's slot: it runs after this)
-    f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7], f[8] = F00, F01, F02, F10, F11, F12, F20, F21, F22
+    a, f = _O_A, _O_T                        # rows of cof F are cross products of rows of F
+    work[a + 0] = F11 * F22 - F12 * F21
+    work[a + 1] = F12 * F20 - F10 * F22
+    work[a + 2] = F10 * F21 - F11 * F20
+    work[a + 3] = F21 * F02 - F22 * F01
+    work[a + 4] = F22 * F00 - F20 * F02
+    work[a + 5] = F20 * F01 - F21 * F00
+    work[a + 6] = F01 * F12 - F02 * F11
+    work[a + 7] = F02 * F10 - F00 * F12
+    work[a + 8] = F00 * F11 - F01 * F10
+    J = F00 * work[a] + F01 * work[a + 1] + F02 * work[a + 2]
+    work[f + 0], work[f + 1], work[f + 2] = F00, F01, F02
+    work[f + 3], work[f + 4], work[f + 5] = F10, F11, F12
+    work[f + 6], work[f + 7], work[f + 8] = F20, F21, F22
     Ic = 0.0
     for r in range(9):
-        Ic += f[r] * f[r]
+        Ic += work[f + r] * work[f + r]
     q = 1.0 / (Ic + 1.0)
     kap = mup * (1.0 - q)
     lj = lamp * (J - alpha)
     psi = 0.5 * mup * (Ic - 3.0) + 0.5 * lamp * (J - alpha) ** 2 - 0.5 * mup * math.log(Ic + 1.0) - psi0
     for r in range(9):
-        P_out[r // 3, r % 3] = kap * f[r] + lj * a[r]
+        P_out[r // 3, r % 3] = kap * work[f + r] + lj * work[a + r]
     if want_hessian:
         # dP/dF = c2 vec(F) vec(F)^T + lam' vec(A) vec(A)^T + kap I + lj d cof/dF, the last
         # from the constant table _COF. The upper triangle is formed as (c2 f_r) f_c +
@@ -639,16 +645,16 @@ def neohookean_point_ws(F, mu, lam, P_out, dPdF_out, want_hessian, project, work
         # it replaces, so the same bits (a chaotic stability cell follows round-off).
         c2 = 2.0 * mup * q * q
         for r in range(9):
-            fr = c2 * f[r]
-            ar = lamp * a[r]
+            fr = c2 * work[f + r]
+            ar = lamp * work[a + r]
             for c in range(r, 9):
-                v = fr * f[c] + ar * a[c]
+                v = fr * work[f + c] + ar * work[a + c]
                 dPdF_out[r, c] = v
                 dPdF_out[c, r] = v
             dPdF_out[r, r] += kap
         for m in range(_COF.shape[0]):
             r, c = _COF[m, 0], _COF[m, 1]
-            v = dPdF_out[r, c] + lj * _COF[m, 2] * f[3 * _COF[m, 3] + _COF[m, 4]]
+            v = dPdF_out[r, c] + lj * _COF[m, 2] * work[f + 3 * _COF[m, 3] + _COF[m, 4]]
             dPdF_out[r, c] = v
             dPdF_out[c, r] = v
         if project:
@@ -695,17 +701,23 @@ def barrier_terms(J, k, jb):
     return k * d * d * d / (3.0 * jb), -k * d * d / jb, 2.0 * k * d / jb
 
 
+@njit(cache=True, inline="always")
+def _det3(F):
+    """det F of a (3, 3) F."""
+    return (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+            - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+            + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
+
+
 @njit(**_JIT)
 def _add_barrier(F, k, jb, P_out, dPdF_out, want_hessian, project, work):
     """Add the compression barrier to (P_out, dPdF_out) in place; returns its psi.
     P_b = a cof(F); dP_b = b cof (x) cof + a d cof/dF (a, b = dpsi/dJ, d2psi/dJ2). With
     project, the barrier's own Hessian is projected in the SVD frame before it is added
     (a sum of PSD parts is PSD)."""
-    # The common case (J >= jb) must cost a determinant, not the scratch views below.
-    J = (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
-         - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
-         + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
-    if J >= jb:
+    # The common case (J >= jb) must cost a determinant, not the scratch views below
+    # (material_point_ws tests it before calling).
+    if _det3(F) >= jb:
         return 0.0
     U, V, B, H, Q, A, s, g, fl, tw, w, K, M = _views(work)
     J = _cofactor(F, A)
@@ -767,7 +779,9 @@ def material_point_ws(kind_id, F, params, P_out, dPdF_out, want_hessian, project
                                   want_hessian, project, work)
     else:
         raise ValueError("material_point: unknown kind_id (0 stvk, 1 corotated, 2 neohookean)")
-    if params[3] > 0.0:
+    # The barrier acts below J = params[4] only: tested here, because even a call of
+    # _add_barrier that returns at once cost a neo-Hookean point 90 ns (session 20).
+    if params[3] > 0.0 and _det3(F) < params[4]:
         psi += _add_barrier(F, params[3], params[4], P_out, dPdF_out, want_hessian, project, work)
     return psi
 
