@@ -21,8 +21,8 @@ from ..threads import pick, serial_twin
 from .material_kernels import WORK_LEN, material_point_ws
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
-# (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean scratch indexed, not sliced, and the
-# barrier called only below its J (session 20), same bits as before.
+# (or a cleared NUMBA_CACHE_DIR). Last material change: StVK's and corotated's scratch views made only
+# where used (session 20), same bits as before.
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ from ..threads import pick, serial_twin
 from .measure import count_not_positive, inverted_samples
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
-# (or a cleared NUMBA_CACHE_DIR). Last material change: the neo-Hookean scratch indexed, not sliced, and the
-# barrier called only below its J (session 20), same bits as before.
+# (or a cleared NUMBA_CACHE_DIR). Last material change: StVK's and corotated's scratch views made only
+# where used (session 20), same bits as before.
 
 
 def sample_jacobians(U3, tets, grads):
@@ -287,7 +287,9 @@ class SampleStack:
         if not want_hessian:
             return energy, g, None
         K = np.empty((D, r, r))
-        (stacked_stiffness if D > 1 else stacked_stiffness_serial)(
+        # A sample's share of the GEMM is 18 r^2 flops: threads pay for octopus (17 x 147
+        # samples, r = 20), not for the cantilever's four domains of 60 samples at r = 12.
+        pick(stacked_stiffness, stacked_stiffness_serial, D * s, weight=max(1, r * r // 64))(
             self.G.reshape(D, s * 9, r), self.CG.reshape(D, s * 9, r), K)
         return energy, g, K
 
