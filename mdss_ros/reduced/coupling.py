@@ -299,10 +299,14 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
     k = elem.shape[1]
     s_max = J.shape[2]
     for la in prange(n_I):
+        # Zeroed entry by entry: KJ[en] = 0.0 made a view of KJ per entry, and a view costs
+        # an atomic reference count (material_kernels.scratch).
         for d in range(vertex_entries.shape[1]):
             en = vertex_entries[la, d]
             if en >= 0:
-                KJ[en] = 0.0
+                for i in range(3):
+                    for t in range(s_max):
+                        KJ[en, i, t] = 0.0
         f0 = 0.0
         f1 = 0.0
         f2 = 0.0
@@ -346,8 +350,12 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
 def gather_entry_J(J, entry_vertex, JE):
     """JE[en] = J of entry en's vertex (n_e, 3, s_max): entries are grouped by domain pair,
     so each pair's J rows become one contiguous (3 n, s_max) matrix."""
+    s_max = J.shape[2]
     for en in prange(entry_vertex.shape[0]):
-        JE[en] = J[entry_vertex[en]]
+        a = entry_vertex[en]
+        for i in range(3):                 # not JE[en] = J[a]: two views an entry
+            for t in range(s_max):
+                JE[en, i, t] = J[a, i, t]
 
 
 @njit(cache=True, parallel=True)
@@ -461,4 +469,7 @@ class TwoPhaseProjection:
         elif G is not None:
             project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
         pick(gather_entry_J, gather_entry_J_serial, n_e)(J, self.entry_vertex, JE)
-        pick(project_pairs, project_pairs_serial, n_e)(self.groups, self.sizes, self.offsets, JE, KJ, A_ss)
+        # A pair's GEMM is 6 s_max^2 flops an entry: octopus (16 pairs, s_max 26) took 0.30 ms
+        # on one thread, which its ~1,000 entries alone did not count as worth two.
+        pick(project_pairs, project_pairs_serial, n_e, weight=max(1, J.shape[2] ** 2 // 64))(
+            self.groups, self.sizes, self.offsets, JE, KJ, A_ss)
