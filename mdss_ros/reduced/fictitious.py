@@ -18,9 +18,62 @@ exp(-2 dt W), the exact flow of the Coriolis force. Shapes: Q, F (n_gen,).
 
 import numpy as np
 import scipy.linalg as sla
+from numba import njit
 
 from ..rotations import cross, exp_so3
 from .frames import fictitious_forces, omega_B2_omega
+
+
+@njit(cache=True)
+def momentum_kernel(m, c, v, w, R, inertia, out):
+    """Mass centre, velocity, angular momentum and inertia of point bodies with their own
+    rotated inertia: rows k of m (n,), c, v, w (n, 3), R, inertia (n, 3, 3) (body frame;
+    zero for a point mass). out (6, 3): rows C, V, L, then I (3, 3). One compiled pass:
+    the same sums in numpy were about 40 small array operations, 0.10 ms on octopus's
+    17 domains, and a free body's step makes two (session 20).
+
+        C = sum m c / M,  V = sum m v / M,  rho = c - C,  I_k = R_k inertia_k R_k^T
+        I = sum I_k + sum m (|rho|^2 E - rho rho^T),  L = sum rho x m (v - V) + sum I_k w
+    """
+    n = m.shape[0]
+    M = 0.0
+    C = np.zeros(3)
+    V = np.zeros(3)
+    for k in range(n):
+        M += m[k]
+        for i in range(3):
+            C[i] += m[k] * c[k, i]
+            V[i] += m[k] * v[k, i]
+    for i in range(3):
+        C[i] /= M
+        V[i] /= M
+    L = np.zeros(3)
+    Iw = np.zeros(3)
+    I = np.zeros((3, 3))
+    RI = np.empty((3, 3))
+    for k in range(n):
+        r0, r1, r2 = c[k, 0] - C[0], c[k, 1] - C[1], c[k, 2] - C[2]
+        mk = m[k]
+        u0, u1, u2 = mk * (v[k, 0] - V[0]), mk * (v[k, 1] - V[1]), mk * (v[k, 2] - V[2])
+        L[0] += r1 * u2 - r2 * u1
+        L[1] += r2 * u0 - r0 * u2
+        L[2] += r0 * u1 - r1 * u0
+        rr = mk * (r0 * r0 + r1 * r1 + r2 * r2)
+        rho = (r0, r1, r2)
+        for i in range(3):
+            for j in range(3):
+                RI[i, j] = R[k, i, 0] * inertia[k, 0, j] + R[k, i, 1] * inertia[k, 1, j] + R[k, i, 2] * inertia[k, 2, j]
+        for i in range(3):
+            for j in range(3):
+                Ik = RI[i, 0] * R[k, j, 0] + RI[i, 1] * R[k, j, 1] + RI[i, 2] * R[k, j, 2]
+                I[i, j] += Ik - mk * rho[i] * rho[j] + (rr if i == j else 0.0)
+                Iw[i] += Ik * w[k, j]
+    for i in range(3):
+        out[0, i] = C[i]
+        out[1, i] = V[i]
+        out[2, i] = L[i] + Iw[i]
+        for j in range(3):
+            out[3 + i, j] = I[i, j]
 
 
 class FictitiousTerms:
@@ -40,20 +93,21 @@ class FictitiousTerms:
         """Mass centre C, its velocity V, angular momentum L about C and inertia I (3, 3)
         of a state, from the domain frames (the deformation's own angular momentum is
         second order because U is mass-orthogonal to rotations) and full-space vertices."""
-        m_d = self.layout.total_mass
-        full = self.is_full_vertex
-        m_f = self.vertex_mass[full]
-        x_f, v_f = x_full[full], v_full[full]
-        m = m_d.sum() + m_f.sum()
-        C = ((m_d[:, None] * fr.c).sum(0) + (m_f[:, None] * x_f).sum(0)) / m
-        V = ((m_d[:, None] * fr.v).sum(0) + (m_f[:, None] * v_f).sum(0)) / m
-        rho, rho_f = fr.c - C, x_f - C
-        I_d = fr.R @ (self.layout.inertia(q) if inertia is None else inertia) @ fr.R.transpose(0, 2, 1)
-        I = (I_d.sum(0) + ((m_d * (rho * rho).sum(1)).sum() + (m_f * (rho_f * rho_f).sum(1)).sum()) * np.eye(3)
-             - np.einsum("i,ij,ik->jk", m_d, rho, rho) - np.einsum("i,ij,ik->jk", m_f, rho_f, rho_f))
-        L = (cross(rho, m_d[:, None] * (fr.v - V)).sum(0) + np.einsum("ijk,ik->j", I_d, fr.w)
-             + cross(rho_f, m_f[:, None] * (v_f - V)).sum(0))
-        return C, V, L, I
+        m, c, v, w, R = self.layout.total_mass, fr.c, fr.v, fr.w, fr.R
+        inertia = self.layout.inertia(q) if inertia is None else inertia
+        if self.F:
+            # Full-space vertices join as point masses (no inertia of their own).
+            full = self.is_full_vertex
+            n_f = int(full.sum())
+            m = np.concatenate([m, self.vertex_mass[full]])
+            c, v = np.concatenate([c, x_full[full]]), np.concatenate([v, v_full[full]])
+            w = np.concatenate([w, np.zeros((n_f, 3))])
+            R = np.concatenate([R, np.tile(np.eye(3), (n_f, 1, 1))])
+            inertia = np.concatenate([inertia, np.zeros((n_f, 3, 3))])
+        out = np.empty((6, 3))
+        momentum_kernel(m, np.ascontiguousarray(c), np.ascontiguousarray(v), np.ascontiguousarray(w),
+                        np.ascontiguousarray(R), np.ascontiguousarray(inertia), out)
+        return out[0], out[1], out[2], out[3:]
 
     def _rigid_Q(self, gm, angular_only=False):
         """Generalised velocities of the rigid motion (V, W) about C (n_gen,);
