@@ -54,6 +54,57 @@ def permute_lower(A, perm, out):
 
 
 @njit(cache=True)
+def _column_below(A, j, a0, i0, i1, d):
+    """A[i, j] = (A[i, j] - sum_{m = a0}^{j - 1} A[i, m] A[j, m]) / d for rows i0 <= i < i1.
+
+    Four rows at a time, each with its own running sum in the order m = a0, a0 + 1, ...:
+    one row at a time, each sum was a chain of dependent multiply-adds (numba keeps the
+    order of a float sum, so it cannot split one), which left the factor waiting on their
+    latency. Four chains side by side give the same bits about three times as fast."""
+    i = i0
+    while i + 4 <= i1:
+        s0, s1, s2, s3 = A[i, j], A[i + 1, j], A[i + 2, j], A[i + 3, j]
+        for m in range(a0, j):
+            ajm = A[j, m]
+            s0 -= A[i, m] * ajm
+            s1 -= A[i + 1, m] * ajm
+            s2 -= A[i + 2, m] * ajm
+            s3 -= A[i + 3, m] * ajm
+        A[i, j], A[i + 1, j], A[i + 2, j], A[i + 3, j] = s0 / d, s1 / d, s2 / d, s3 / d
+        i += 4
+    for i in range(i, i1):
+        acc = A[i, j]
+        for m in range(a0, j):
+            acc -= A[i, m] * A[j, m]
+        A[i, j] = acc / d
+
+
+@njit(cache=True)
+def _row_update(A, i, j0, j1, a0, a1):
+    """A[i, j] -= sum_{m = a0}^{a1 - 1} A[i, m] A[j, m] for j0 <= j < j1, four columns at
+    a time with a running sum each (see _column_below)."""
+    j = j0
+    while j + 4 <= j1:
+        s0 = s1 = s2 = s3 = 0.0
+        for m in range(a0, a1):
+            aim = A[i, m]
+            s0 += aim * A[j, m]
+            s1 += aim * A[j + 1, m]
+            s2 += aim * A[j + 2, m]
+            s3 += aim * A[j + 3, m]
+        A[i, j] -= s0
+        A[i, j + 1] -= s1
+        A[i, j + 2] -= s2
+        A[i, j + 3] -= s3
+        j += 4
+    for j in range(j, j1):
+        acc = 0.0
+        for m in range(a0, a1):
+            acc += A[i, m] * A[j, m]
+        A[i, j] -= acc
+
+
+@njit(cache=True)
 def factor_blocks(A, po, later_ptr, later_idx):
     """In-place block Cholesky of A (S, S), already permuted to elimination order: block p
     spans rows po[p]:po[p + 1]; later_idx[later_ptr[p]:later_ptr[p + 1]] are the blocks
@@ -62,11 +113,12 @@ def factor_blocks(A, po, later_ptr, later_idx):
 
     Right-looking over blocks, left-looking inside a block: after block p is factored its
     outer products update the blocks of its later neighbours only, so the work follows
-    the domain graph (no pass over zero blocks)."""
+    the domain graph (no pass over zero blocks). Every entry is the same sum, in the same
+    order, as an entry-by-entry loop; the helpers only run several of them side by side."""
     n_blocks = len(po) - 1
     for p in range(n_blocks):
         a0, a1 = po[p], po[p + 1]
-        for j in range(a0, a1):                        # L_pp = chol(A_pp)
+        for j in range(a0, a1):                        # L_pp = chol(A_pp), column by column
             d = A[j, j]
             for m in range(a0, j):
                 d -= A[j, m] * A[j, m]
@@ -74,30 +126,17 @@ def factor_blocks(A, po, later_ptr, later_idx):
                 return p
             d = np.sqrt(d)
             A[j, j] = d
-            for i in range(j + 1, a1):
-                acc = A[i, j]
-                for m in range(a0, j):
-                    acc -= A[i, m] * A[j, m]
-                A[i, j] = acc / d
-        for t in range(later_ptr[p], later_ptr[p + 1]):  # L_qp = A_qp L_pp^-T
+            _column_below(A, j, a0, j + 1, a1, d)
+        for t in range(later_ptr[p], later_ptr[p + 1]):  # L_qp = A_qp L_pp^-T, column by column
             q = later_idx[t]
-            for i in range(po[q], po[q + 1]):
-                for j in range(a0, a1):
-                    acc = A[i, j]
-                    for m in range(a0, j):
-                        acc -= A[i, m] * A[j, m]
-                    A[i, j] = acc / A[j, j]
+            for j in range(a0, a1):
+                _column_below(A, j, a0, po[q], po[q + 1], A[j, j])
         for ta in range(later_ptr[p], later_ptr[p + 1]):  # A_ab -= L_ap L_bp^T, b <= a
             qa = later_idx[ta]
             for tb in range(later_ptr[p], ta + 1):
                 qb = later_idx[tb]
                 for i in range(po[qa], po[qa + 1]):
-                    j_end = i + 1 if qa == qb else po[qb + 1]
-                    for j in range(po[qb], j_end):
-                        acc = 0.0
-                        for m in range(a0, a1):
-                            acc += A[i, m] * A[j, m]
-                        A[i, j] -= acc
+                    _row_update(A, i, po[qb], i + 1 if qa == qb else po[qb + 1], a0, a1)
     return -1
 
 
