@@ -7,9 +7,20 @@ multithreaded, nested-dissection ordering; 5 s for 140K DOFs of a 3D tet mesh he
 A matrix that is not positive definite raises NotPositiveDefinite (PARDISO and CHOLMOD
 detect it) so the caller can fall back, e.g. to a PSD-projected stiffness.
 """
+import os
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+# MKL's strict conditional numerical reproducibility, read once when MKL loads (pypardiso
+# loads it with the first solver, after this import). PARDISO's CNR mode (iparm[33],
+# reproducible_pardiso) gave the same bits at 2, 3 and 4 MKL threads but other bits at one
+# thread (1.2e-15 relative) on an AVX-512 machine, so a full-space step (BLAS at one
+# thread) and a precompute (two) solved the same matrix differently; with STRICT they agree
+# (session 20; an AVX2 machine had agreed without it). "AUTO" keeps MKL's choice of code
+# path for this CPU. A value the user set is kept.
+os.environ.setdefault("MKL_CBWR", "AUTO,STRICT")
 
 try:
     import cholespy
