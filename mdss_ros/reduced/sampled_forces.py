@@ -212,24 +212,42 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
                              + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
             psi = material_point_ws(kind_id, F, params, P, C, want_hessian, project, work)
             energy_out[d, s] = w * psi
-            # Loops ordered so that the innermost runs along the modes (contiguous rows of
-            # G): it vectorises, where a sum over the 9 entries of F per mode did not.
-            g = g_out[d, s]
-            g[:] = 0.0
-            for a in range(9):
-                p = P[a // 3, a % 3]
-                for b in range(r):
-                    g[b] += G[d, s, a, b] * p
+            # The innermost loop runs along the modes (contiguous rows of G) and sums the 9
+            # entries of F in registers, unrolled: it vectorises, and writes each output
+            # once. Accumulating in the output row, one entry of F after another, made 9
+            # passes of loads and stores over it (CG: 1.76 -> 1.18 ms on octopus's 2,364
+            # samples, one thread, session 20); a sum over the 9 entries per mode as a
+            # loop did not vectorise. The sums keep their order: the same bits.
+            p0, p1, p2 = P[0, 0], P[0, 1], P[0, 2]
+            p3, p4, p5 = P[1, 0], P[1, 1], P[1, 2]
+            p6, p7, p8 = P[2, 0], P[2, 1], P[2, 2]
             for b in range(r):
-                g[b] *= w
+                acc = 0.0 + G[d, s, 0, b] * p0
+                acc += G[d, s, 1, b] * p1
+                acc += G[d, s, 2, b] * p2
+                acc += G[d, s, 3, b] * p3
+                acc += G[d, s, 4, b] * p4
+                acc += G[d, s, 5, b] * p5
+                acc += G[d, s, 6, b] * p6
+                acc += G[d, s, 7, b] * p7
+                acc += G[d, s, 8, b] * p8
+                g_out[d, s, b] = w * acc
             if want_hessian:
                 for a in range(9):
-                    row = CG_out[d, s, a]
-                    row[:] = 0.0
-                    for k in range(9):
-                        c = w * C[a, k]
-                        for b in range(r):
-                            row[b] += c * G[d, s, k, b]
+                    c0, c1, c2 = w * C[a, 0], w * C[a, 1], w * C[a, 2]
+                    c3, c4, c5 = w * C[a, 3], w * C[a, 4], w * C[a, 5]
+                    c6, c7, c8 = w * C[a, 6], w * C[a, 7], w * C[a, 8]
+                    for b in range(r):
+                        acc = 0.0 + c0 * G[d, s, 0, b]
+                        acc += c1 * G[d, s, 1, b]
+                        acc += c2 * G[d, s, 2, b]
+                        acc += c3 * G[d, s, 3, b]
+                        acc += c4 * G[d, s, 4, b]
+                        acc += c5 * G[d, s, 5, b]
+                        acc += c6 * G[d, s, 6, b]
+                        acc += c7 * G[d, s, 7, b]
+                        acc += c8 * G[d, s, 8, b]
+                        CG_out[d, s, a, b] = acc
 
 
 stacked_kernel_serial = serial_twin(stacked_kernel)
