@@ -435,7 +435,7 @@ def stvk_point_ws(F, mu, lam, s_min, P_out, dPdF_out, want_hessian, project, wor
     """St. Venant-Kirchhoff point kernel with scratch ``work`` (WORK_LEN,); see stvk_point."""
     # The closed form needs three views of the scratch; the SVD branches make the rest.
     # Each view made costs an atomic reference count (see neohookean_point_ws): all
-    # thirteen made here cost a point 810 ns instead of 306 without its Hessian (one
+    # thirteen made here cost a point 810 ns instead of 306-353 without its Hessian (one
     # thread, 2,500 points near F = I, session 20), with the same bits.
     B = work[_O_B:_O_B + 9].reshape((3, 3))
     A = work[_O_A:_O_A + 9].reshape((3, 3))

@@ -300,7 +300,7 @@ def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ
     s_max = J.shape[2]
     for la in prange(n_I):
         # Zeroed entry by entry: KJ[en] = 0.0 made a view of KJ per entry, and a view costs
-        # an atomic reference count (material_kernels.scratch).
+        # an atomic reference count (see material_kernels.neohookean_point_ws).
         for d in range(vertex_entries.shape[1]):
             en = vertex_entries[la, d]
             if en >= 0:
