@@ -259,14 +259,13 @@ def coupling_entries(elem, vertex_sub):
     elem (n_c, k) interface-vertex ids; vertex_sub (n_I,) subspace domain of each (-1 for a
     full-space vertex). Returns (entry_vertex (n_e,), entry_dom (n_e,), pair_entry
     (n_c, k, k): the entry of (a, domain of b) for every vertex pair of every element, -1
-    where a or b is full-space, vertex_entries (n_I, D): the entries of each vertex, -1
-    padded).
+    where a or b is full-space).
     """
     n_c, k = elem.shape
     n_I = len(vertex_sub)
     if n_c == 0 or vertex_sub.max() < 0:
         z = np.zeros(0, dtype=np.int64)
-        return z, z, np.full((n_c, k, k), -1, dtype=np.int64), np.full((n_I, 1), -1, dtype=np.int64)
+        return z, z, np.full((n_c, k, k), -1, dtype=np.int64)
     nd = int(vertex_sub.max()) + 1
     a_ids = np.repeat(elem, k, axis=1).ravel()                 # (n_c k k,) vertex a of each pair
     b_dom = vertex_sub[np.tile(elem, (1, k)).ravel()]          # domain of b
@@ -277,104 +276,7 @@ def coupling_entries(elem, vertex_sub):
     pair_entry = np.full(len(a_ids), -1, dtype=np.int64)
     pair_entry[valid] = inverse.ravel()
     entry_vertex, entry_dom = keys % n_I, (keys // n_I) % nd
-    counts = np.bincount(entry_vertex, minlength=n_I)
-    by_vertex = np.argsort(entry_vertex, kind="stable")
-    rank = np.arange(len(keys)) - np.concatenate([[0], np.cumsum(counts)[:-1]])[entry_vertex[by_vertex]]
-    vertex_entries = np.full((n_I, max(int(counts.max()), 1)), -1, dtype=np.int64)
-    vertex_entries[entry_vertex[by_vertex], rank] = by_vertex
-    return (entry_vertex.astype(np.int64), entry_dom.astype(np.int64),
-            pair_entry.reshape(n_c, k, k).astype(np.int64), vertex_entries)
-
-
-@njit(cache=True, parallel=True)
-def accumulate_KJ(elem, w, f_e, K_e, J, pair_entry, ptr, inc, vertex_entries, KJ, f_sum):
-    """Phase 1, parallel over interface vertices a (each writes only its own rows):
-    KJ[entry (a, l)] = sum of w_e K_e[a, b] J_b over the elements at a and their vertices b
-    in domain l; f_sum[a] = sum of w_e f_e[a] over the elements at a.
-    w (n_c,) element weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max);
-    KJ (n_e, 3, s_max), f_sum (n_I, 3) are overwritten. (A flat KJ with each entry only
-    s_l wide, tried to save phase 2 a copy, made this kernel 2.4x slower: the fixed
-    s_max-wide rows vectorise.)"""
-    n_I = ptr.shape[0] - 1
-    k = elem.shape[1]
-    s_max = J.shape[2]
-    for la in prange(n_I):
-        # Zeroed entry by entry: KJ[en] = 0.0 made a view of KJ per entry, and a view costs
-        # an atomic reference count (see material_kernels.neohookean_point_ws).
-        for d in range(vertex_entries.shape[1]):
-            en = vertex_entries[la, d]
-            if en >= 0:
-                for i in range(3):
-                    for t in range(s_max):
-                        KJ[en, i, t] = 0.0
-        f0 = 0.0
-        f1 = 0.0
-        f2 = 0.0
-        for m in range(ptr[la], ptr[la + 1]):
-            e = inc[m, 0]
-            a = inc[m, 1]
-            we = w[e]
-            f0 += we * f_e[e, a, 0]
-            f1 += we * f_e[e, a, 1]
-            f2 += we * f_e[e, a, 2]
-            for b in range(k):
-                lb = elem[e, b]
-                en = pair_entry[e, a, b]
-                if en < 0:
-                    continue                 # a or b full-space: project_coupling_full
-                # The 3 x 3 block, weighted, then one pass along the columns that reads each
-                # J value once for all three rows (the loop over rows outside re-read J
-                # three times: 1.6x slower here, load-bound).
-                k00 = we * K_e[e, 3 * a, 3 * b]
-                k01 = we * K_e[e, 3 * a, 3 * b + 1]
-                k02 = we * K_e[e, 3 * a, 3 * b + 2]
-                k10 = we * K_e[e, 3 * a + 1, 3 * b]
-                k11 = we * K_e[e, 3 * a + 1, 3 * b + 1]
-                k12 = we * K_e[e, 3 * a + 1, 3 * b + 2]
-                k20 = we * K_e[e, 3 * a + 2, 3 * b]
-                k21 = we * K_e[e, 3 * a + 2, 3 * b + 1]
-                k22 = we * K_e[e, 3 * a + 2, 3 * b + 2]
-                for t in range(s_max):
-                    j0 = J[lb, 0, t]
-                    j1 = J[lb, 1, t]
-                    j2 = J[lb, 2, t]
-                    KJ[en, 0, t] += k00 * j0 + k01 * j1 + k02 * j2
-                    KJ[en, 1, t] += k10 * j0 + k11 * j1 + k12 * j2
-                    KJ[en, 2, t] += k20 * j0 + k21 * j1 + k22 * j2
-        f_sum[la, 0] = f0
-        f_sum[la, 1] = f1
-        f_sum[la, 2] = f2
-
-
-@njit(cache=True, parallel=True)
-def gather_entry_J(J, entry_vertex, JE):
-    """JE[en] = J of entry en's vertex (n_e, 3, s_max): entries are grouped by domain pair,
-    so each pair's J rows become one contiguous (3 n, s_max) matrix."""
-    s_max = J.shape[2]
-    for en in prange(entry_vertex.shape[0]):
-        a = entry_vertex[en]
-        for i in range(3):                 # not JE[en] = J[a]: two views an entry
-            for t in range(s_max):
-                JE[en, i, t] = J[a, i, t]
-
-
-@njit(cache=True, parallel=True)
-def project_pairs(groups, sizes, offsets, JE, KJ, A):
-    """Phase 2: A[k, l] += JE_kl^T KJ_kl for every domain pair k <= l that shares
-    coupling elements, and A[l, k] += its transpose; one BLAS GEMM each on s_max-wide rows
-    (padding columns are zero). groups (n_g, 3): k, l and the pair's first entry; the next
-    row's first entry (or n_e) ends it."""
-    n_e, _, s_max = JE.shape
-    # Parallel over pairs: each writes only its own block (k, l), so the result does not
-    # depend on the thread schedule. Each GEMM runs single-threaded BLAS (threads.py).
-    for g in prange(groups.shape[0]):
-        k, l, e0 = groups[g, 0], groups[g, 1], groups[g, 2]
-        e1 = groups[g + 1, 2] if g + 1 < groups.shape[0] else n_e
-        sk, sl = sizes[k], sizes[l]
-        P = np.dot(JE[e0:e1].reshape(3 * (e1 - e0), s_max).T, KJ[e0:e1].reshape(3 * (e1 - e0), s_max))
-        A[offsets[k]:offsets[k] + sk, offsets[l]:offsets[l] + sl] += P[:sk, :sl]
-        if l != k:
-            A[offsets[l]:offsets[l] + sl, offsets[k]:offsets[k] + sk] += P[:sk, :sl].T
+    return entry_vertex.astype(np.int64), entry_dom.astype(np.int64), pair_entry.reshape(n_c, k, k).astype(np.int64)
 
 
 @njit(cache=True)
@@ -402,24 +304,124 @@ def project_sums_by_domain(J, f_sum, dom_start, sizes, offsets, G):
                 G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
 
 
-accumulate_KJ_serial = serial_twin(accumulate_KJ)
+@njit(cache=True, parallel=True)
+def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_vertex, entry_diag, P, f_sum):
+    """Both phases of the projection, one chunk of a domain pair's entries at a time, in
+    cache: for each entry en = (a, l) of chunk c, its K J rows
+        KJ[en] = sum of w_e K_e[a, b] J_b over the elements e at a and their vertices b in l
+    (3, s_max), and then P[c] = JE_c^T KJ_c (s_max, s_max), the chunk's share of A[k, l]
+    (JE_c: the J rows of the chunk's vertices a, all in domain k). Where l is a's own
+    domain (entry_diag) it also sums f_sum[a] = sum of w_e f_e[a] over the elements at a.
+
+    chunks (n_ch, 2): first and one-past-last entry of each chunk; w (n_c,) element weights
+    (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); P (n_ch, s_max,
+    s_max) and f_sum (n_I, 3) are written (f_sum only on rows with a diagonal entry).
+
+    Why chunks: the former two passes wrote every entry's K J (4.4 MB on armadillo_class)
+    and a copy of its J rows (4.4 MB more), then read both back for one GEMM per pair,
+    all out of cache; a chunk's 2 x 3 x 64 rows stay in the core's L2 between the two
+    phases. Parallel over chunks: each writes only its own P[c] and its diagonal entries'
+    f_sum rows, so the result does not depend on the thread schedule."""
+    k = elem.shape[1]
+    s_max = J.shape[2]
+    for c in prange(chunks.shape[0]):
+        e0, e1 = chunks[c, 0], chunks[c, 1]
+        n = e1 - e0
+        KJ = np.zeros((3 * n, s_max))
+        JE = np.empty((3 * n, s_max))
+        for j in range(n):
+            en = e0 + j
+            la = entry_vertex[en]
+            diag = entry_diag[en]
+            for i in range(3):
+                for t in range(s_max):
+                    JE[3 * j + i, t] = J[la, i, t]
+            f0 = 0.0
+            f1 = 0.0
+            f2 = 0.0
+            for m in range(ptr[la], ptr[la + 1]):
+                e = inc[m, 0]
+                a = inc[m, 1]
+                we = w[e]
+                if diag:
+                    f0 += we * f_e[e, a, 0]
+                    f1 += we * f_e[e, a, 1]
+                    f2 += we * f_e[e, a, 2]
+                for b in range(k):
+                    if pair_entry[e, a, b] != en:
+                        continue             # b in another domain, or full-space
+                    lb = elem[e, b]
+                    # The 3 x 3 block, weighted, then one pass along the columns that reads
+                    # each J value once for all three rows (a loop over rows outside re-read
+                    # J three times: 1.6x slower, load-bound).
+                    k00 = we * K_e[e, 3 * a, 3 * b]
+                    k01 = we * K_e[e, 3 * a, 3 * b + 1]
+                    k02 = we * K_e[e, 3 * a, 3 * b + 2]
+                    k10 = we * K_e[e, 3 * a + 1, 3 * b]
+                    k11 = we * K_e[e, 3 * a + 1, 3 * b + 1]
+                    k12 = we * K_e[e, 3 * a + 1, 3 * b + 2]
+                    k20 = we * K_e[e, 3 * a + 2, 3 * b]
+                    k21 = we * K_e[e, 3 * a + 2, 3 * b + 1]
+                    k22 = we * K_e[e, 3 * a + 2, 3 * b + 2]
+                    r = 3 * j
+                    for t in range(s_max):
+                        j0 = J[lb, 0, t]
+                        j1 = J[lb, 1, t]
+                        j2 = J[lb, 2, t]
+                        KJ[r, t] += k00 * j0 + k01 * j1 + k02 * j2
+                        KJ[r + 1, t] += k10 * j0 + k11 * j1 + k12 * j2
+                        KJ[r + 2, t] += k20 * j0 + k21 * j1 + k22 * j2
+            if diag:
+                f_sum[la, 0] = f0
+                f_sum[la, 1] = f1
+                f_sum[la, 2] = f2
+        Pc = np.dot(JE.T, KJ)
+        for s in range(s_max):
+            for t in range(s_max):
+                P[c, s, t] = Pc[s, t]
+
+
+@njit(cache=True, parallel=True)
+def sum_chunks(groups, group_chunks, sizes, offsets, P, A):
+    """A[k, l] += sum of the pair's chunk products P[c] (in chunk order), for every domain
+    pair k <= l of groups (n_g, 2), and A[l, k] += its transpose; group_chunks (n_g + 1,)
+    the first chunk of each pair. Parallel over pairs, each writing only its own blocks."""
+    for g in prange(groups.shape[0]):
+        k, l = groups[g, 0], groups[g, 1]
+        ok, ol, sk, sl = offsets[k], offsets[l], sizes[k], sizes[l]
+        for s in range(sk):
+            for t in range(sl):
+                v = 0.0
+                for c in range(group_chunks[g], group_chunks[g + 1]):
+                    v += P[c, s, t]
+                A[ok + s, ol + t] += v
+                if l != k:
+                    A[ol + t, ok + s] += v
+
+
+chunk_products_serial = serial_twin(chunk_products)
+sum_chunks_serial = serial_twin(sum_chunks)
 project_sums_by_domain_serial = serial_twin(project_sums_by_domain)
-gather_entry_J_serial = serial_twin(gather_entry_J)
-project_pairs_serial = serial_twin(project_pairs)
 interface_jacobian_serial = serial_twin(interface_jacobian)
 
 
 class TwoPhaseProjection:
     """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
-    phases: per-vertex K J and force sums (accumulate_KJ), then one GEMM per domain pair,
-    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l} (project_pairs), and J^T f per vertex
+    phases: per-vertex K J and force sums, then one GEMM per domain pair,
+    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, both run one chunk of a pair's entries at a
+    time (chunk_products) and the chunks summed (sum_chunks); J^T f per vertex
     (project_sums). About a third of the flops of the per-element-pair product, and the
     O(n_I s^2) part runs in BLAS on contiguous blocks. All of it is compiled: no Python
-    loop over domains or domain pairs."""
+    loop over domains or domain pairs.
 
-    def __init__(self, elem, vertex_sub, sizes, offsets):
+    chunk: entries per chunk. Measured on armadillo_class (7,013 entries, s_max 26, one BLAS
+    thread, min of 200): 64 as fast as 32 and 128; against the former two passes over all
+    entries, 2.45 against 2.9 ms serial and 1.38 against 1.46 ms on two threads, with 8.8
+    MB less of buffers."""
+
+    def __init__(self, elem, vertex_sub, sizes, offsets, chunk=64):
         self.elem = elem
-        entry_vertex, entry_dom, pair_entry, vertex_entries = coupling_entries(elem, vertex_sub)
+        entry_vertex, entry_dom, pair_entry = coupling_entries(elem, vertex_sub)
         self.ptr, self.inc = vertex_incidence(elem, len(vertex_sub))
         self.sizes = np.asarray(sizes, dtype=np.int64)
         self.offsets = np.asarray(offsets, dtype=np.int64)
@@ -434,7 +436,6 @@ class TwoPhaseProjection:
         new = np.full(len(entry_vertex) + 1, -1, dtype=np.int64)      # old entry -> new, -1 -> -1
         new[:-1][keep] = np.arange(int(keep.sum()))
         self.pair_entry = new[pair_entry]
-        self.vertex_entries = new[vertex_entries]
         self.entry_vertex, entry_dom = entry_vertex[keep], entry_dom[keep]
         # Entries are ordered by (domain of a, l, a): each domain pair's entries are one run.
         n_e = len(self.entry_vertex)
@@ -442,6 +443,14 @@ class TwoPhaseProjection:
         key = k_e * D + entry_dom
         starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if n_e else np.zeros(0, np.int64)
         self.groups = np.stack([k_e[starts], entry_dom[starts], starts], axis=1).astype(np.int64)
+        # Each pair's run cut into chunks of at most `chunk` entries (chunk_products).
+        ends = np.append(starts[1:], n_e).astype(np.int64) if n_e else starts
+        per_group = -(-(ends - starts) // chunk)
+        self.group_chunks = np.r_[0, np.cumsum(per_group)].astype(np.int64)
+        first = np.repeat(starts, per_group) + chunk * (np.arange(int(per_group.sum())) -
+                                                        np.repeat(self.group_chunks[:-1], per_group))
+        self.chunks = np.stack([first, np.minimum(first + chunk, np.repeat(ends, per_group))], 1).astype(np.int64)
+        self.entry_diag = (entry_dom == k_e)
         self._buffers = None
         # The model orders interface rows by domain, full-space ones last: then each
         # domain's rows are one run and J^T f runs parallel over domains.
@@ -456,20 +465,23 @@ class TwoPhaseProjection:
         full-space vertices, project_forces and project_coupling_full do the rest."""
         if weights is None:
             weights = np.ones(len(self.elem))
-        shape = (len(self.entry_vertex), 3, J.shape[2])
+        n_I, n_e, s_max = len(self.ptr) - 1, len(self.entry_vertex), J.shape[2]
+        shape = (len(self.chunks), s_max, s_max)
         if self._buffers is None or self._buffers[0].shape != shape:
-            self._buffers = (np.empty(shape), np.empty(shape), np.empty((len(self.ptr) - 1, 3)))
-        KJ, JE, f_sum = self._buffers
-        n_I, n_e = len(self.ptr) - 1, len(self.entry_vertex)
-        pick(accumulate_KJ, accumulate_KJ_serial, n_I, weight=4)(
-            self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc, self.vertex_entries, KJ, f_sum)
+            self._buffers = (np.empty(shape), np.empty((n_I, 3)))
+        P, f_sum = self._buffers
+        f_sum[:] = 0.0                       # rows without a diagonal entry stay 0
+        # An entry is its K J rows (about 18 s_max flops for each element vertex pair) and
+        # its share of the pair's GEMM (6 s_max^2 flops): octopus (about 1,000 entries,
+        # s_max 26) took 0.30 ms in GEMMs on one thread, which its entry count alone did
+        # not count as worth two.
+        pick(chunk_products, chunk_products_serial, n_e, weight=max(4, s_max ** 2 // 64))(
+            self.chunks, self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc,
+            self.entry_vertex, self.entry_diag, P, f_sum)
         if G is not None and self.dom_start is not None:
             pick(project_sums_by_domain, project_sums_by_domain_serial, n_I)(
                 J, f_sum, self.dom_start, self.sizes, self.offsets, G)
         elif G is not None:
             project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
-        pick(gather_entry_J, gather_entry_J_serial, n_e)(J, self.entry_vertex, JE)
-        # A pair's GEMM is 6 s_max^2 flops an entry: octopus (16 pairs, s_max 26) took 0.30 ms
-        # on one thread, which its ~1,000 entries alone did not count as worth two.
-        pick(project_pairs, project_pairs_serial, n_e, weight=max(1, J.shape[2] ** 2 // 64))(
-            self.groups, self.sizes, self.offsets, JE, KJ, A_ss)
+        pick(sum_chunks, sum_chunks_serial, len(self.chunks), weight=max(1, s_max ** 2 // 64))(
+            self.groups, self.group_chunks, self.sizes, self.offsets, P, A_ss)
