@@ -279,49 +279,27 @@ def coupling_entries(elem, vertex_sub):
     return entry_vertex.astype(np.int64), entry_dom.astype(np.int64), pair_entry.reshape(n_c, k, k).astype(np.int64)
 
 
-@njit(cache=True)
-def project_sums(J, f_sum, row_dom, sizes, offsets, G):
-    """G[domain k of a] += J_a^T f_sum[a] for every subspace interface vertex a (row_dom < 0:
-    full-space, skipped)."""
-    for la in range(J.shape[0]):
-        k = row_dom[la]
-        if k < 0:
-            continue
-        o = offsets[k]
-        for t in range(sizes[k]):
-            G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
-
-
 @njit(cache=True, parallel=True)
-def project_sums_by_domain(J, f_sum, dom_start, sizes, offsets, G):
-    """project_sums when each domain's interface rows are one run, rows dom_start[k] to
-    dom_start[k + 1] (D + 1,): parallel over domains, each writing only its own rows of G,
-    in the same order as project_sums (so the same sums)."""
-    for k in prange(sizes.shape[0]):
-        o = offsets[k]
-        for la in range(dom_start[k], dom_start[k + 1]):
-            for t in range(sizes[k]):
-                G[o + t] += J[la, 0, t] * f_sum[la, 0] + J[la, 1, t] * f_sum[la, 1] + J[la, 2, t] * f_sum[la, 2]
-
-
-@njit(cache=True, parallel=True)
-def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_vertex, entry_diag, P, f_sum):
+def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_vertex, entry_diag, P, g):
     """Both phases of the projection, one chunk of a domain pair's entries at a time, in
     cache: for each entry en = (a, l) of chunk c, its K J rows
         KJ[en] = sum of w_e K_e[a, b] J_b over the elements e at a and their vertices b in l
     (3, s_max), and then P[c] = JE_c^T KJ_c (s_max, s_max), the chunk's share of A[k, l]
     (JE_c: the J rows of the chunk's vertices a, all in domain k). Where l is a's own
-    domain (entry_diag) it also sums f_sum[a] = sum of w_e f_e[a] over the elements at a.
+    domain (entry_diag: each vertex has one such entry) it also adds J_a^T f_a to g[c]
+    (s_max,), with f_a = sum of w_e f_e[a] over the elements at a: the chunk's share of
+    G on domain k.
 
     chunks (n_ch, 2): first and one-past-last entry of each chunk; w (n_c,) element weights
     (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); P (n_ch, s_max,
-    s_max) and f_sum (n_I, 3) are written (f_sum only on rows with a diagonal entry).
+    s_max) and g (n_ch, s_max) are written.
 
     Why chunks: the former two passes wrote every entry's K J (4.4 MB on armadillo_class)
     and a copy of its J rows (4.4 MB more), then read both back for one GEMM per pair,
     all out of cache; a chunk's 2 x 3 x 64 rows stay in the core's L2 between the two
-    phases. Parallel over chunks: each writes only its own P[c] and its diagonal entries'
-    f_sum rows, so the result does not depend on the thread schedule."""
+    phases (and J^T f, a pass over J of its own before, reads the J rows copied here).
+    Parallel over chunks, each writing only its own P[c] and g[c], so the result does not
+    depend on the thread schedule."""
     k = elem.shape[1]
     s_max = J.shape[2]
     for c in prange(chunks.shape[0]):
@@ -329,6 +307,8 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
         n = e1 - e0
         KJ = np.zeros((3 * n, s_max))
         JE = np.empty((3 * n, s_max))
+        for t in range(s_max):
+            g[c, t] = 0.0
         for j in range(n):
             en = e0 + j
             la = entry_vertex[en]
@@ -372,9 +352,9 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
                         KJ[r + 1, t] += k10 * j0 + k11 * j1 + k12 * j2
                         KJ[r + 2, t] += k20 * j0 + k21 * j1 + k22 * j2
             if diag:
-                f_sum[la, 0] = f0
-                f_sum[la, 1] = f1
-                f_sum[la, 2] = f2
+                r = 3 * j
+                for t in range(s_max):
+                    g[c, t] += JE[r, t] * f0 + JE[r + 1, t] * f1 + JE[r + 2, t] * f2
         Pc = np.dot(JE.T, KJ)
         for s in range(s_max):
             for t in range(s_max):
@@ -382,26 +362,38 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
 
 
 @njit(cache=True, parallel=True)
-def sum_chunks(groups, group_chunks, sizes, offsets, P, A):
+def sum_chunks(groups, group_chunks, sizes, offsets, P, g, A, G):
     """A[k, l] += sum of the pair's chunk products P[c] (in chunk order), for every domain
-    pair k <= l of groups (n_g, 2), and A[l, k] += its transpose; group_chunks (n_g + 1,)
-    the first chunk of each pair. Parallel over pairs, each writing only its own blocks."""
-    for g in prange(groups.shape[0]):
-        k, l = groups[g, 0], groups[g, 1]
+    pair k <= l of groups (n_g, 2), and A[l, k] += its transpose; on a diagonal pair (k, k)
+    also G[k] += sum of its chunks' g[c] (G of length 0: forces not wanted). group_chunks
+    (n_g + 1,) the first chunk of each pair. Parallel over pairs, each writing only its own
+    blocks (and only pair (k, k) writes G's rows of k)."""
+    for q in prange(groups.shape[0]):
+        k, l = groups[q, 0], groups[q, 1]
         ok, ol, sk, sl = offsets[k], offsets[l], sizes[k], sizes[l]
+        c0, c1 = group_chunks[q], group_chunks[q + 1]
+        # Chunk by chunk into V, each P[c] read in order (summing all chunks of one entry
+        # first strode through P), then into A.
+        V = np.zeros((sk, sl))
+        for c in range(c0, c1):
+            for s in range(sk):
+                for t in range(sl):
+                    V[s, t] += P[c, s, t]
         for s in range(sk):
             for t in range(sl):
-                v = 0.0
-                for c in range(group_chunks[g], group_chunks[g + 1]):
-                    v += P[c, s, t]
-                A[ok + s, ol + t] += v
+                A[ok + s, ol + t] += V[s, t]
                 if l != k:
-                    A[ol + t, ok + s] += v
+                    A[ol + t, ok + s] += V[s, t]
+        if l == k and G.shape[0] > 0:
+            for t in range(sk):
+                v = 0.0
+                for c in range(c0, c1):
+                    v += g[c, t]
+                G[ok + t] += v
 
 
 chunk_products_serial = serial_twin(chunk_products)
 sum_chunks_serial = serial_twin(sum_chunks)
-project_sums_by_domain_serial = serial_twin(project_sums_by_domain)
 interface_jacobian_serial = serial_twin(interface_jacobian)
 
 
@@ -409,8 +401,7 @@ class TwoPhaseProjection:
     """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
     phases: per-vertex K J and force sums, then one GEMM per domain pair,
     A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, both run one chunk of a pair's entries at a
-    time (chunk_products) and the chunks summed (sum_chunks); J^T f per vertex
-    (project_sums). About a third of the flops of the per-element-pair product, and the
+    time (chunk_products), with J^T f, and the chunks summed (sum_chunks). About a third of the flops of the per-element-pair product, and the
     O(n_I s^2) part runs in BLAS on contiguous blocks. All of it is compiled: no Python
     loop over domains or domain pairs.
 
@@ -452,11 +443,6 @@ class TwoPhaseProjection:
         self.chunks = np.stack([first, np.minimum(first + chunk, np.repeat(ends, per_group))], 1).astype(np.int64)
         self.entry_diag = (entry_dom == k_e)
         self._buffers = None
-        # The model orders interface rows by domain, full-space ones last: then each
-        # domain's rows are one run and J^T f runs parallel over domains.
-        sub = self.row_dom[self.row_dom >= 0]
-        runs = bool(np.all(self.row_dom[:len(sub)] >= 0) and np.all(np.diff(sub) >= 0))
-        self.dom_start = np.searchsorted(sub, np.arange(D + 1)).astype(np.int64) if runs else None
 
     def add(self, f_e, K_e, J, G, A_ss, weights=None):
         """f_e (n_c, k, 3), K_e (n_c, 3k, 3k) world-frame element forces and stiffness,
@@ -465,23 +451,17 @@ class TwoPhaseProjection:
         full-space vertices, project_forces and project_coupling_full do the rest."""
         if weights is None:
             weights = np.ones(len(self.elem))
-        n_I, n_e, s_max = len(self.ptr) - 1, len(self.entry_vertex), J.shape[2]
+        n_e, s_max = len(self.entry_vertex), J.shape[2]
         shape = (len(self.chunks), s_max, s_max)
         if self._buffers is None or self._buffers[0].shape != shape:
-            self._buffers = (np.empty(shape), np.empty((n_I, 3)))
-        P, f_sum = self._buffers
-        f_sum[:] = 0.0                       # rows without a diagonal entry stay 0
+            self._buffers = (np.empty(shape), np.empty(shape[:2]))
+        P, g = self._buffers
         # An entry is its K J rows (about 18 s_max flops for each element vertex pair) and
         # its share of the pair's GEMM (6 s_max^2 flops): octopus (about 1,000 entries,
         # s_max 26) took 0.30 ms in GEMMs on one thread, which its entry count alone did
         # not count as worth two.
         pick(chunk_products, chunk_products_serial, n_e, weight=max(4, s_max ** 2 // 64))(
             self.chunks, self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc,
-            self.entry_vertex, self.entry_diag, P, f_sum)
-        if G is not None and self.dom_start is not None:
-            pick(project_sums_by_domain, project_sums_by_domain_serial, n_I)(
-                J, f_sum, self.dom_start, self.sizes, self.offsets, G)
-        elif G is not None:
-            project_sums(J, f_sum, self.row_dom, self.sizes, self.offsets, G)
+            self.entry_vertex, self.entry_diag, P, g)
         pick(sum_chunks, sum_chunks_serial, len(self.chunks), weight=max(1, s_max ** 2 // 64))(
-            self.groups, self.group_chunks, self.sizes, self.offsets, P, A_ss)
+            self.groups, self.group_chunks, self.sizes, self.offsets, P, g, A_ss, np.zeros(0) if G is None else G)
