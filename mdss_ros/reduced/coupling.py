@@ -284,37 +284,38 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
     """Both phases of the projection, one chunk of a domain pair's entries at a time, in
     cache: for each entry en = (a, l) of chunk c, its K J rows
         KJ[en] = sum of w_e K_e[a, b] J_b over the elements e at a and their vertices b in l
-    (3, s_max), and then P[c] = JE_c^T KJ_c (s_max, s_max), the chunk's share of A[k, l]
-    (JE_c: the J rows of the chunk's vertices a, all in domain k). Where l is a's own
-    domain (entry_diag: each vertex has one such entry) it also adds J_a^T f_a to g[c]
-    (s_max,), with f_a = sum of w_e f_e[a] over the elements at a: the chunk's share of
-    G on domain k.
+    (3, s_l), and then P[c] = JE_c^T KJ_c (s_k, s_l), the chunk's share of A[k, l] (JE_c:
+    the J rows of the chunk's vertices a, all in domain k). Where l is a's own domain
+    (entry_diag: each vertex has one such entry) it also adds J_a^T f_a to g[c] (s_k,),
+    with f_a = sum of w_e f_e[a] over the elements at a: the chunk's share of G on k.
 
-    chunks (n_ch, 2): first and one-past-last entry of each chunk; w (n_c,) element weights
-    (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); P (n_ch, s_max,
-    s_max) and g (n_ch, s_max) are written.
+    chunks (n_ch, 4): first and one-past-last entry of each chunk, s_k and s_l (the
+    generalised columns of domains k and l; J is zero beyond them); w (n_c,) element
+    weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); P (n_ch,
+    s_max, s_max) and g (n_ch, s_max) are written on [:s_k, :s_l] and [:s_k].
 
     Why chunks: the former two passes wrote every entry's K J (4.4 MB on armadillo_class)
     and a copy of its J rows (4.4 MB more), then read both back for one GEMM per pair,
     all out of cache; a chunk's 2 x 3 x 64 rows stay in the core's L2 between the two
     phases (and J^T f, a pass over J of its own before, reads the J rows copied here).
     Parallel over chunks, each writing only its own P[c] and g[c], so the result does not
-    depend on the thread schedule."""
+    depend on the thread schedule. Only the domains' own columns are formed: an automatic
+    model's arms (r = 6, s = 12) beside a pinned core of 30 modes (s_max = 30) were 2.5-6x
+    the work of their own widths."""
     k = elem.shape[1]
-    s_max = J.shape[2]
     for c in prange(chunks.shape[0]):
-        e0, e1 = chunks[c, 0], chunks[c, 1]
+        e0, e1, sk, sl = chunks[c, 0], chunks[c, 1], chunks[c, 2], chunks[c, 3]
         n = e1 - e0
-        KJ = np.zeros((3 * n, s_max))
-        JE = np.empty((3 * n, s_max))
-        for t in range(s_max):
+        KJ = np.zeros((3 * n, sl))
+        JE = np.empty((3 * n, sk))
+        for t in range(sk):
             g[c, t] = 0.0
         for j in range(n):
             en = e0 + j
             la = entry_vertex[en]
             diag = entry_diag[en]
             for i in range(3):
-                for t in range(s_max):
+                for t in range(sk):
                     JE[3 * j + i, t] = J[la, i, t]
             f0 = 0.0
             f1 = 0.0
@@ -344,7 +345,7 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
                     k21 = we * K_e[e, 3 * a + 2, 3 * b + 1]
                     k22 = we * K_e[e, 3 * a + 2, 3 * b + 2]
                     r = 3 * j
-                    for t in range(s_max):
+                    for t in range(sl):
                         j0 = J[lb, 0, t]
                         j1 = J[lb, 1, t]
                         j2 = J[lb, 2, t]
@@ -353,11 +354,11 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
                         KJ[r + 2, t] += k20 * j0 + k21 * j1 + k22 * j2
             if diag:
                 r = 3 * j
-                for t in range(s_max):
+                for t in range(sk):
                     g[c, t] += JE[r, t] * f0 + JE[r + 1, t] * f1 + JE[r + 2, t] * f2
         Pc = np.dot(JE.T, KJ)
-        for s in range(s_max):
-            for t in range(s_max):
+        for s in range(sk):
+            for t in range(sl):
                 P[c, s, t] = Pc[s, t]
 
 
@@ -440,7 +441,9 @@ class TwoPhaseProjection:
         self.group_chunks = np.r_[0, np.cumsum(per_group)].astype(np.int64)
         first = np.repeat(starts, per_group) + chunk * (np.arange(int(per_group.sum())) -
                                                         np.repeat(self.group_chunks[:-1], per_group))
-        self.chunks = np.stack([first, np.minimum(first + chunk, np.repeat(ends, per_group))], 1).astype(np.int64)
+        self.chunks = np.stack([first, np.minimum(first + chunk, np.repeat(ends, per_group)),
+                                np.repeat(self.sizes[self.groups[:, 0]], per_group),
+                                np.repeat(self.sizes[self.groups[:, 1]], per_group)], 1).astype(np.int64)
         self.entry_diag = (entry_dom == k_e)
         self._buffers = None
 
