@@ -48,8 +48,7 @@ def exp_so3(w):
 
 def exp_so3_batch(w):
     """exp([w_i]x) for a stack w (n, 3): (n, 3, 3), the same formula as exp_so3 per row
-    (one compiled pass: the numpy expression of a dozen small ops cost about 50 us a call,
-    and a reduced step makes three)."""
+    (one compiled pass: the numpy expression of a dozen small ops cost about 50 us a call)."""
     w = np.ascontiguousarray(w, dtype=np.float64).reshape(-1, 3)
     out = np.empty((len(w), 3, 3))
     _exp_so3_kernel(w, out)
@@ -58,42 +57,74 @@ def exp_so3_batch(w):
 
 @njit(cache=True)
 def _exp_so3_kernel(w, out):
-    """out[i] = I + a [w_i]x + b [w_i]x^2, a = sin(t)/t, b = (1 - cos t)/t^2 (t = |w_i|;
-    the limits 1 and 1/2 below t = 1e-8)."""
     for n in range(w.shape[0]):
-        x, y, z = w[n, 0], w[n, 1], w[n, 2]
-        th = np.sqrt(x * x + y * y + z * z)
-        if th < 1e-8:
-            a, b = 1.0, 0.5
-        else:
-            a = np.sin(th) / th
-            b = (1.0 - np.cos(th)) / th ** 2
-        # [w]x^2 = w w^T - |w|^2 I
-        xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
-        out[n, 0, 0] = 1.0 + b * (-yy - zz)
-        out[n, 0, 1] = -a * z + b * xy
-        out[n, 0, 2] = a * y + b * xz
-        out[n, 1, 0] = a * z + b * xy
-        out[n, 1, 1] = 1.0 + b * (-xx - zz)
-        out[n, 1, 2] = -a * x + b * yz
-        out[n, 2, 0] = -a * y + b * xz
-        out[n, 2, 1] = a * x + b * yz
-        out[n, 2, 2] = 1.0 + b * (-xx - yy)
+        exp_so3_into(w[n, 0], w[n, 1], w[n, 2], out[n])
+
+
+@njit(cache=True)
+def exp_so3_into(x, y, z, E):
+    """E (3, 3) = exp([w]x) = I + a [w]x + b [w]x^2 for w = (x, y, z), a = sin(t)/t,
+    b = (1 - cos t)/t^2 (t = |w|; the limits 1 and 1/2 below t = 1e-8). exp(0) is exactly I."""
+    th = np.sqrt(x * x + y * y + z * z)
+    if th < 1e-8:
+        a, b = 1.0, 0.5
+    else:
+        a = np.sin(th) / th
+        b = (1.0 - np.cos(th)) / th ** 2
+    # [w]x^2 = w w^T - |w|^2 I
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    E[0, 0] = 1.0 + b * (-yy - zz)
+    E[0, 1] = -a * z + b * xy
+    E[0, 2] = a * y + b * xz
+    E[1, 0] = a * z + b * xy
+    E[1, 1] = 1.0 + b * (-xx - zz)
+    E[1, 2] = -a * x + b * yz
+    E[2, 0] = -a * y + b * xz
+    E[2, 1] = a * x + b * yz
+    E[2, 2] = 1.0 + b * (-xx - yy)
 
 
 def orthonormalise_batch(R):
     """The nearest rotations of a stack R (n, 3, 3) of nearly orthonormal matrices (products
-    of rotations, off by round-off): one Bjorck step X (3 I - X^T X) / 2, which takes an
-    orthonormality error e to O(e^2) and converges to the polar factor U V^T. A batched
-    SVD cost 13 us a frame in every reduced step (0.08 ms of star_limbs' 1.3 ms); its answer
-    and this one agree to round-off for the errors a step leaves (test_rotations). A stack
-    off by more than 1e-6 (not a step's product) takes the SVD."""
-    R = np.asarray(R, dtype=np.float64)
-    RtR = R.transpose(0, 2, 1) @ R
-    if not np.abs(RtR - np.eye(3)).max(initial=0.0) <= 1e-6:       # far off (or NaN): the SVD
-        U, _, Vt = np.linalg.svd(R)
-        return U @ Vt
-    return 1.5 * R - 0.5 * R @ RtR
+    of rotations, off by round-off), each by orthonormalise_into."""
+    R = np.ascontiguousarray(R, dtype=np.float64)
+    out = np.empty_like(R)
+    _orthonormalise_kernel(R, out)
+    return out
+
+
+@njit(cache=True)
+def _orthonormalise_kernel(R, out):
+    T = np.empty((3, 3))
+    for n in range(R.shape[0]):
+        orthonormalise_into(R[n], out[n], T)
+
+
+@njit(cache=True)
+def orthonormalise_into(X, out, T):
+    """out (3, 3) = the rotation nearest X (3, 3), a product of rotations off by round-off:
+    one Bjorck step X (3 I - X^T X) / 2, which takes an orthonormality error e to O(e^2)
+    and converges to the polar factor U V^T. A batched SVD cost 13 us a frame in every
+    reduced step (0.08 ms of star_limbs' 1.3 ms); its answer and this one agree to
+    round-off for the errors a step leaves (test_rotations). X off by more than 1e-6 (not
+    a step's product), or NaN, takes the SVD. T (3, 3) scratch. out must not be X."""
+    off = 0.0
+    for i in range(3):
+        for j in range(3):
+            t = X[0, i] * X[0, j] + X[1, i] * X[1, j] + X[2, i] * X[2, j]
+            T[i, j] = t
+            e = abs(t - (1.0 if i == j else 0.0))
+            if not e <= off:
+                off = e          # NaN sticks
+    if off <= 1e-6:
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = 1.5 * X[i, j] - 0.5 * (X[i, 0] * T[0, j] + X[i, 1] * T[1, j] + X[i, 2] * T[2, j])
+    else:
+        U, _, Vt = np.linalg.svd(X)
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = U[i, 0] * Vt[0, j] + U[i, 1] * Vt[1, j] + U[i, 2] * Vt[2, j]
 
 
 def cross(a, b):

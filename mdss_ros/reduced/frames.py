@@ -30,7 +30,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ..rotations import exp_so3_batch, orthonormalise_batch
+from ..rotations import exp_so3_into, orthonormalise_into
+# numba's cache=True keys a cached kernel on its own file only: the kernels here inline
+# exp_so3_into and orthonormalise_into, so a change to rotations.py must come with an edit
+# of this file (or a cleared NUMBA_CACHE_DIR). Last rotations change: both made njit
+# functions of one rotation (session 21).
+
 
 
 @dataclass(frozen=True)
@@ -135,15 +140,163 @@ class FrameState:
     def copy(self):
         return FrameState(self.c.copy(), self.R.copy(), self.v.copy(), self.w.copy(), self.w_prev.copy())
 
-    def advance(self, v_new, w_new, dt, movable):
-        """c' = c + dt v', R' = exp([dt w']x) R for the movable domains (bool (d,))."""
-        self.w_prev = self.w.copy()
-        self.v = np.where(movable[:, None], v_new, 0.0)
-        self.w = np.where(movable[:, None], w_new, 0.0)
-        self.c = self.c + dt * self.v
-        mv = np.flatnonzero(movable)
-        if len(mv):              # a pinned body's frames stay put (and small arrays cost per call)
-            self.R[mv] = orthonormalise_batch(exp_so3_batch(dt * self.w[mv]) @ self.R[mv])
+    def predict(self, v_new, w_new, dt, movable, inertia_start, inertia_end, carry=None):
+        """The frames after a step of dt with frame velocities v_new, w_new (d, 3) (rows of
+        fixed domains ignored): a new FrameState, its w_prev this state's w.
+
+        carry None: c' = c + dt v', R' = exp([dt w']x) R. carry = (C, V, W): v', w' are
+        relative to the body's mean rigid motion about its mass centre C (a free body,
+        step.py's _predict), which carries every frame by Rg = exp(dt [W]x):
+        c' = C + dt V + Rg (c - C + dt v'), v = V + W x (c' - C - dt V) + Rg v',
+        R' = Rg exp([dt w']x) R. Then each movable frame's angular velocity is re-expressed
+        from the momentum it was solved for at the predicted rotation, I_p w_a with I_p =
+        Rp I_s Rp^T, Rp = exp([dt w]x) R and w_a = w' (+ W when carried), with its inertia
+        after the step: w = (R' I_e R'^T)^-1 I_p w_a. inertia_start, inertia_end (d, 3, 3)
+        body-frame inertia at the step's start and end (layout.inertia). One compiled pass
+        (predict_kernel): the same in numpy was about 30 small operations, 0.25 ms of an
+        automatic star_limbs model's 0.64 ms step (session 21)."""
+        out = FrameState(np.empty_like(self.c), np.empty_like(self.R), np.empty_like(self.v),
+                         np.empty_like(self.w), self.w.copy())
+        C, V, W = (np.zeros(3), np.zeros(3), np.zeros(3)) if carry is None else carry
+        predict_kernel(dt, self.c, self.R, self.w, np.ascontiguousarray(v_new), np.ascontiguousarray(w_new), movable,
+                       carry is not None, np.asarray(C, dtype=np.float64), np.asarray(V, dtype=np.float64),
+                       np.asarray(W, dtype=np.float64), np.ascontiguousarray(inertia_start),
+                       np.ascontiguousarray(inertia_end), out.c, out.R, out.v, out.w)
+        return out
+
+
+@njit(cache=True)
+def _mul3(A, B, out):
+    """out = A B for (3, 3) matrices (out not A or B)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@njit(cache=True)
+def _sandwich(R, I, out, T):
+    """out = R I R^T (3, 3); T scratch (3, 3)."""
+    _mul3(R, I, T)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = T[i, 0] * R[j, 0] + T[i, 1] * R[j, 1] + T[i, 2] * R[j, 2]
+
+
+@njit(cache=True)
+def predict_kernel(dt, c0, R0, w0, v_new, w_new, movable, carry, C, V, W, I_start, I_end, c, R, v, w):
+    """FrameState.predict for every frame d (shapes (D, 3), (D, 3, 3)): writes c, R, v, w.
+    A fixed frame keeps c0, R0 with zero velocities. Each new rotation is the product
+    (Rg) exp([dt w']x) R0 made orthonormal (rotations.orthonormalise_into: one Bjorck
+    step, or the SVD's polar factor for a product far from a rotation)."""
+    D = c0.shape[0]
+    E = np.empty((3, 3))
+    X = np.empty((3, 3))
+    T = np.empty((3, 3))
+    Ip = np.empty((3, 3))
+    I1 = np.empty((3, 3))
+    Rg = np.empty((3, 3))
+    exp_so3_into(dt * W[0], dt * W[1], dt * W[2], Rg)
+    for d in range(D):
+        if not movable[d]:
+            for i in range(3):
+                c[d, i] = c0[d, i]
+                v[d, i] = 0.0
+                w[d, i] = 0.0
+                for j in range(3):
+                    R[d, i, j] = R0[d, i, j]
+            continue
+        exp_so3_into(dt * w_new[d, 0], dt * w_new[d, 1], dt * w_new[d, 2], E)
+        if carry:
+            # rho = Rg (c0 - C + dt v'); c = C + dt V + rho; v = V + W x rho + Rg v'; w = W + Rg w'
+            p0 = c0[d, 0] - C[0] + dt * v_new[d, 0]
+            p1 = c0[d, 1] - C[1] + dt * v_new[d, 1]
+            p2 = c0[d, 2] - C[2] + dt * v_new[d, 2]
+            r0 = Rg[0, 0] * p0 + Rg[0, 1] * p1 + Rg[0, 2] * p2
+            r1 = Rg[1, 0] * p0 + Rg[1, 1] * p1 + Rg[1, 2] * p2
+            r2 = Rg[2, 0] * p0 + Rg[2, 1] * p1 + Rg[2, 2] * p2
+            c[d, 0] = C[0] + dt * V[0] + r0
+            c[d, 1] = C[1] + dt * V[1] + r1
+            c[d, 2] = C[2] + dt * V[2] + r2
+            wx = (W[1] * r2 - W[2] * r1, W[2] * r0 - W[0] * r2, W[0] * r1 - W[1] * r0)
+            for i in range(3):
+                v[d, i] = V[i] + wx[i] + (Rg[i, 0] * v_new[d, 0] + Rg[i, 1] * v_new[d, 1] + Rg[i, 2] * v_new[d, 2])
+                w[d, i] = W[i] + (Rg[i, 0] * w_new[d, 0] + Rg[i, 1] * w_new[d, 1] + Rg[i, 2] * w_new[d, 2])
+            _mul3(Rg, E, T)
+            _mul3(T, R0[d], X)
+        else:
+            for i in range(3):
+                v[d, i] = v_new[d, i]
+                w[d, i] = w_new[d, i]
+                c[d, i] = c0[d, i] + dt * v_new[d, i]
+            _mul3(E, R0[d], X)
+        orthonormalise_into(X, R[d], T)
+        # Momentum form: h = Rp I_s Rp^T w_a at the predicted rotation, then w = (R I_e R^T)^-1 h.
+        exp_so3_into(dt * w0[d, 0], dt * w0[d, 1], dt * w0[d, 2], E)
+        _mul3(E, R0[d], X)
+        _sandwich(X, I_start[d], Ip, T)
+        if carry:
+            a0, a1, a2 = W[0] + w_new[d, 0], W[1] + w_new[d, 1], W[2] + w_new[d, 2]
+        else:
+            a0, a1, a2 = w[d, 0], w[d, 1], w[d, 2]
+        h0 = Ip[0, 0] * a0 + Ip[0, 1] * a1 + Ip[0, 2] * a2
+        h1 = Ip[1, 0] * a0 + Ip[1, 1] * a1 + Ip[1, 2] * a2
+        h2 = Ip[2, 0] * a0 + Ip[2, 1] * a1 + Ip[2, 2] * a2
+        _sandwich(R[d], I_end[d], I1, T)
+        # I1 is symmetric positive definite: Cramer's rule by cofactors.
+        k00 = I1[1, 1] * I1[2, 2] - I1[1, 2] * I1[2, 1]
+        k01 = I1[0, 2] * I1[2, 1] - I1[0, 1] * I1[2, 2]
+        k02 = I1[0, 1] * I1[1, 2] - I1[0, 2] * I1[1, 1]
+        k11 = I1[0, 0] * I1[2, 2] - I1[0, 2] * I1[2, 0]
+        k12 = I1[0, 2] * I1[1, 0] - I1[0, 0] * I1[1, 2]
+        k22 = I1[0, 0] * I1[1, 1] - I1[0, 1] * I1[1, 0]
+        k10 = I1[1, 2] * I1[2, 0] - I1[1, 0] * I1[2, 2]
+        k20 = I1[1, 0] * I1[2, 1] - I1[1, 1] * I1[2, 0]
+        k21 = I1[0, 1] * I1[2, 0] - I1[0, 0] * I1[2, 1]
+        det = I1[0, 0] * k00 + I1[0, 1] * k10 + I1[0, 2] * k20
+        w[d, 0] = (k00 * h0 + k01 * h1 + k02 * h2) / det
+        w[d, 1] = (k10 * h0 + k11 * h1 + k12 * h2) / det
+        w[d, 2] = (k20 * h0 + k21 * h1 + k22 * h2) / det
+
+
+@njit(cache=True)
+def world_inertia_kernel(R, w, dt, inertia, movers, out):
+    """out[m] = Rp I Rp^T for each movable domain d = movers[m], Rp = exp([dt w_d]x) R_d
+    (dt = 0: R_d itself, exp(0) being exactly I). R (D, 3, 3), w (D, 3), inertia (D, 3, 3)
+    body-frame, movers (M,), out (M, 3, 3)."""
+    E = np.empty((3, 3))
+    X = np.empty((3, 3))
+    T = np.empty((3, 3))
+    for m in range(movers.shape[0]):
+        d = movers[m]
+        exp_so3_into(dt * w[d, 0], dt * w[d, 1], dt * w[d, 2], E)
+        _mul3(E, R[d], X)
+        _sandwich(X, inertia[d], out[m], T)
+
+
+@njit(cache=True)
+def inertia_kernel(q, r, inertia0, B1, B2, out):
+    """out[d] = I0 + (tr L + tr B2(q, q)) I - L - B2(q, q), L = B1(q) + B1(q)^T, with
+    B1(q) = sum_a q_a B1[a] and B2(q, q) = sum_ab q_a q_b B2[a, b] over domain d's own r[d]
+    modes. q (D, r_max), r (D,), inertia0 (D, 3, 3), B1 (D, r_max, 3, 3), B2 (D, r_max,
+    r_max, 3, 3), out (D, 3, 3)."""
+    D = q.shape[0]
+    for d in range(D):
+        b1 = np.zeros((3, 3))
+        b2 = np.zeros((3, 3))
+        for a in range(r[d]):
+            qa = q[d, a]
+            for i in range(3):
+                for j in range(3):
+                    b1[i, j] += qa * B1[d, a, i, j]
+            for b in range(r[d]):
+                qab = qa * q[d, b]
+                for i in range(3):
+                    for j in range(3):
+                        b2[i, j] += qab * B2[d, a, b, i, j]
+        tr = 2.0 * (b1[0, 0] + b1[1, 1] + b1[2, 2]) + b2[0, 0] + b2[1, 1] + b2[2, 2]
+        for i in range(3):
+            for j in range(3):
+                out[d, i, j] = inertia0[d, i, j] + (tr if i == j else 0.0) - (b1[i, j] + b1[j, i]) - b2[i, j]
 
 
 def rest_inertia(r_local, mass):

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..rotations import exp_so3_batch
+from .frames import inertia_kernel
 
 
 @dataclass(frozen=True)
@@ -150,14 +150,8 @@ class DomainLayout:
     def inertia(self, q):
         """Inertia about the centre of mass in each domain frame at deformation q (D, r_max):
         (D, 3, 3). I(q) = I0 + (tr L + tr B2(q, q)) I - L - B2(q, q), L = B1(q) + B1(q)^T
-        (domains.SubspaceDomain.inertia, all domains at once; fixed domains keep I0)."""
-        D, r = q.shape
-        B1q = (q[:, None, :] @ self.B1.reshape(D, r, 9)).reshape(D, 3, 3)
-        B2q = (q[:, None, :] @ (q[:, None, :] @ self.B2.reshape(D, r, r * 9)).reshape(D, r, 9)).reshape(D, 3, 3)
-        lin = B1q + B1q.transpose(0, 2, 1)
-        tr = np.trace(lin, axis1=1, axis2=2) + np.trace(B2q, axis1=1, axis2=2)
-        return self.inertia0 + tr[:, None, None] * np.eye(3) - lin - B2q
-
-    def predicted_rotations(self, R, w, dt):
-        """exp(dt [w]x) R for every domain: (D, 3, 3)."""
-        return exp_so3_batch(dt * w) @ R
+        (domains.SubspaceDomain.inertia, all domains at once in frames.inertia_kernel, each
+        over its own modes; fixed domains keep I0)."""
+        out = np.empty((self.D, 3, 3))
+        inertia_kernel(np.ascontiguousarray(q), self.r, self.inertia0, self.B1, self.B2, out)
+        return out

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import SceneError
 from ..fem.backward_euler import contact_forces, contact_stats
 from ..loads import sparse_loads
-from ..rotations import cross, exp_so3, exp_so3_batch, orthonormalise_batch
+from ..rotations import cross, exp_so3
 from ..step_options import StepOptions
 from .unified_system import StepSystem
 
@@ -290,41 +290,25 @@ class Step:
         w = frames0.w.copy()
         v[L.movers] = Q[L.lin_index]
         w[L.movers] = Q[L.ang_index]
-        frames = frames0.copy()
-        if self.F:
-            v_full = self._full_expand(Q[self.S:])
-        else:
-            v_full = self.v_full
-        if gm is None:
-            frames.advance(v, w, dt, self.movable)
-            x_full = x0 + dt * v_full if self.F else x0
-        else:
-            C, V, W = gm[:3]
-            Rg = exp_so3(dt * W)
-            C1 = C + dt * V
-            mv = self.movable
-            rho = Rg @ (frames0.c[mv] - C + dt * v[mv]).T
-            frames.c[mv] = C1 + rho.T
-            frames.v[mv] = V + cross(W, rho.T) + v[mv] @ Rg.T
-            frames.w[mv] = W + w[mv] @ Rg.T
-            frames.R[mv] = orthonormalise_batch(Rg @ exp_so3_batch(dt * w[mv]) @ frames0.R[mv])
-            if self.F:
-                rho_f = (x0 - C + dt * v_full) @ Rg.T
-                x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
-                v_full = np.where(self.is_full_vertex[:, None], V + cross(W, rho_f) + v_full @ Rg.T, 0.0)
-            else:
-                x_full = x0
+        v_full = self._full_expand(Q[self.S:]) if self.F else self.v_full
         # The angular rows solved I_pred w' = h (momentum form, see _mass_blocks) with the
-        # inertia at the predicted rotation; re-express that momentum with the inertia the
-        # domain really has after the step, so torque-free domains keep h exactly.
+        # inertia at the predicted rotation; predict re-expresses that momentum with the
+        # inertia the domain really has after the step, so torque-free domains keep h exactly.
+        # A pinned body's frames do not turn: no inertia is needed.
         mv = L.movers
-        inertia = self._inertia_of(q) if len(mv) else None       # a pinned body's frames do not turn
-        if len(mv):
-            Rp = L.predicted_rotations(frames0.R[mv], frames0.w[mv], dt)
-            h = np.einsum("dij,dj->di", Rp @ inertia0[mv] @ Rp.transpose(0, 2, 1),
-                          frames.w[mv] if gm is None else gm[2] + w[mv])
-            R1 = frames.R[mv]
-            frames.w[mv] = np.linalg.solve(R1 @ inertia[mv] @ R1.transpose(0, 2, 1), h[:, :, None])[:, :, 0]
+        inertia = self._inertia_of(q) if len(mv) else None
+        frames = frames0.predict(v, w, dt, self.movable, inertia0 if len(mv) else L.inertia0,
+                                 inertia if len(mv) else L.inertia0, None if gm is None else gm[:3])
+        if gm is None:
+            x_full = x0 + dt * v_full if self.F else x0
+        elif self.F:
+            C, V, W = gm[:3]
+            Rg, C1 = exp_so3(dt * W), C + dt * V
+            rho_f = (x0 - C + dt * v_full) @ Rg.T
+            x_full = np.where(self.is_full_vertex[:, None], C1 + rho_f, x0)
+            v_full = np.where(self.is_full_vertex[:, None], V + cross(W, rho_f) + v_full @ Rg.T, 0.0)
+        else:
+            x_full = x0
         if gm is not None and gm[3] is not None:
             # Carrying the state by exp(dt W) also turns its angular momentum by that
             # rotation; where L is not parallel to W (products of inertia) this is a
@@ -338,7 +322,6 @@ class Step:
             frames.w[mv] += dW
             if self.F:
                 v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
-        frames.w_prev = frames0.w.copy()
         return q, qd, frames, x_full, v_full
 
     #: (q copy, layout.inertia(q)) of the last _inertia_of call.

@@ -23,6 +23,7 @@ import scipy.sparse.linalg as spla
 
 from ..errors import SceneError
 from ..linear_solver import NotPositiveDefinite
+from .frames import world_inertia_kernel
 
 
 @dataclass(frozen=True)
@@ -153,13 +154,12 @@ class UnifiedSystem:
         inertia (D, 3, 3) at the state's q when the caller has it."""
         L = self.layout
         mv = L.movers
+        I_world = np.empty((len(mv), 3, 3))
         if len(mv):
-            R = (L.predicted_rotations(frames.R[mv], frames.w[mv], predicted_dt) if predicted_dt
-                 else frames.R[mv])
-            I_body = (L.inertia(self.q) if inertia is None else inertia)[mv]
-            I_world = R @ I_body @ R.transpose(0, 2, 1)
-        else:
-            I_world = np.zeros((0, 3, 3))
+            # One compiled pass (frames.world_inertia_kernel): the prediction and the two
+            # stacked products in numpy were 20 us a call, twice a step (session 21).
+            world_inertia_kernel(frames.R, frames.w, float(predicted_dt or 0.0),
+                                 L.inertia(self.q) if inertia is None else inertia, mv, I_world)
         return SubspaceMass(S=self.S, modal=L.modal_rows, lin_index=L.lin_index,
                             mass=L.total_mass[mv], ang_index=L.ang_index, inertia=I_world)
 
