@@ -21,7 +21,7 @@ import scipy.linalg as sla
 from numba import njit
 
 from ..rotations import cross, exp_so3
-from .frames import fictitious_forces, omega_B2_omega
+from .frames import fictitious_rows_kernel, omega_B2_omega
 
 
 @njit(cache=True)
@@ -181,9 +181,8 @@ class FictitiousTerms:
         F = np.zeros(self.n_gen)
         if not len(L.movers):
             return F                     # fixed frames: no fictitious forces
-        omega = np.einsum("dji,dj->di", frames.R, frames.w)
-        alpha = np.einsum("dji,dj->di", frames.R, frames.w - frames.w_prev) / dt
-        f = fictitious_forces(L, q, qd if coriolis else np.zeros_like(qd), omega, alpha)
-        rows = L.mask & L.movable[:, None]
-        F[L.q_index[rows]] = f[rows]
+        fictitious_rows_kernel(L.W, L.B1, L.B2, L.s, L.r, L.movers, L.q_index, np.ascontiguousarray(q),
+                               np.ascontiguousarray(qd) if coriolis else np.zeros_like(qd),
+                               np.ascontiguousarray(frames.R), np.ascontiguousarray(frames.w),
+                               np.ascontiguousarray(frames.w_prev), float(dt), F)
         return F

@@ -75,6 +75,26 @@ def fictitious_forces(t, q, qd, omega, alpha):
 
 
 @njit(cache=True)
+def _fictitious_row(W, B1, B2, s, d, a, rd, q, qd, o0, o1, o2, a0, a1, a2):
+    """Row a of domain d's U^T f_fc (module docstring), over its rd modes."""
+    acc = 0.0
+    for b in range(rd):
+        wk0 = W[d, a, b, 0]
+        wk1 = W[d, a, b, 1]
+        wk2 = W[d, a, b, 2]
+        acc += 2.0 * qd[d, b] * (wk0 * o0 + wk1 * o1 + wk2 * o2)
+        acc += q[d, b] * (wk0 * a0 + wk1 * a1 + wk2 * a2)
+        bo = (o0 * (B2[d, a, b, 0, 0] * o0 + B2[d, a, b, 0, 1] * o1 + B2[d, a, b, 0, 2] * o2)
+              + o1 * (B2[d, a, b, 1, 0] * o0 + B2[d, a, b, 1, 1] * o1 + B2[d, a, b, 1, 2] * o2)
+              + o2 * (B2[d, a, b, 2, 0] * o0 + B2[d, a, b, 2, 1] * o1 + B2[d, a, b, 2, 2] * o2))
+        acc -= bo * q[d, b]
+    b1 = (o0 * (B1[d, a, 0, 0] * o0 + B1[d, a, 0, 1] * o1 + B1[d, a, 0, 2] * o2)
+          + o1 * (B1[d, a, 1, 0] * o0 + B1[d, a, 1, 1] * o1 + B1[d, a, 1, 2] * o2)
+          + o2 * (B1[d, a, 2, 0] * o0 + B1[d, a, 2, 1] * o1 + B1[d, a, 2, 2] * o2))
+    return acc - b1 + (o0 * o0 + o1 * o1 + o2 * o2) * (s[d, a] + q[d, a])
+
+
+@njit(cache=True)
 def fictitious_kernel(W, B1, B2, s, r, movable, q, qd, omega, alpha, out):
     """out[d, a] = 2 (W(qd) omega)_a + (W(q) alpha)_a - omega^T B1[a] omega
     - sum_b (omega^T B2[a, b] omega) q_b + |omega|^2 (s_a + q_a), per movable domain d
@@ -88,25 +108,29 @@ def fictitious_kernel(W, B1, B2, s, r, movable, q, qd, omega, alpha, out):
         rd = r[d] if movable[d] else 0
         for a in range(rd, r_max):
             out[d, a] = 0.0
-        o0, o1, o2 = omega[d, 0], omega[d, 1], omega[d, 2]
-        a0, a1, a2 = alpha[d, 0], alpha[d, 1], alpha[d, 2]
-        w2 = o0 * o0 + o1 * o1 + o2 * o2
         for a in range(rd):
-            acc = 0.0
-            for b in range(rd):
-                wk0 = W[d, a, b, 0]
-                wk1 = W[d, a, b, 1]
-                wk2 = W[d, a, b, 2]
-                acc += 2.0 * qd[d, b] * (wk0 * o0 + wk1 * o1 + wk2 * o2)
-                acc += q[d, b] * (wk0 * a0 + wk1 * a1 + wk2 * a2)
-                bo = 0.0
-                for i in range(3):
-                    bo += omega[d, i] * (B2[d, a, b, i, 0] * o0 + B2[d, a, b, i, 1] * o1 + B2[d, a, b, i, 2] * o2)
-                acc -= bo * q[d, b]
-            b1 = 0.0
-            for i in range(3):
-                b1 += omega[d, i] * (B1[d, a, i, 0] * o0 + B1[d, a, i, 1] * o1 + B1[d, a, i, 2] * o2)
-            out[d, a] = acc - b1 + w2 * (s[d, a] + q[d, a])
+            out[d, a] = _fictitious_row(W, B1, B2, s, d, a, rd, q, qd, omega[d, 0], omega[d, 1], omega[d, 2],
+                                        alpha[d, 0], alpha[d, 1], alpha[d, 2])
+
+
+@njit(cache=True)
+def fictitious_rows_kernel(W, B1, B2, s, r, movers, q_index, q, qd, R, w, w_prev, dt, F):
+    """F[q_index[d, a]] += U^T f_fc of each movable domain d = movers[m] (fictitious_kernel's
+    rows), from the frame's omega = R^T w and alpha = R^T (w - w_prev) / dt. F (n_gen,);
+    R (D, 3, 3), w, w_prev (D, 3); the rest as in fictitious_kernel (qd zero: no Coriolis
+    term). One pass for what FictitiousTerms._explicit_terms did in two einsums, the
+    kernel and a masked scatter."""
+    for m in range(movers.shape[0]):
+        d = movers[m]
+        o0 = R[d, 0, 0] * w[d, 0] + R[d, 1, 0] * w[d, 1] + R[d, 2, 0] * w[d, 2]
+        o1 = R[d, 0, 1] * w[d, 0] + R[d, 1, 1] * w[d, 1] + R[d, 2, 1] * w[d, 2]
+        o2 = R[d, 0, 2] * w[d, 0] + R[d, 1, 2] * w[d, 1] + R[d, 2, 2] * w[d, 2]
+        e0, e1, e2 = w[d, 0] - w_prev[d, 0], w[d, 1] - w_prev[d, 1], w[d, 2] - w_prev[d, 2]
+        a0 = (R[d, 0, 0] * e0 + R[d, 1, 0] * e1 + R[d, 2, 0] * e2) / dt
+        a1 = (R[d, 0, 1] * e0 + R[d, 1, 1] * e1 + R[d, 2, 1] * e2) / dt
+        a2 = (R[d, 0, 2] * e0 + R[d, 1, 2] * e1 + R[d, 2, 2] * e2) / dt
+        for a in range(r[d]):
+            F[q_index[d, a]] += _fictitious_row(W, B1, B2, s, d, a, r[d], q, qd, o0, o1, o2, a0, a1, a2)
 
 
 def omega_B2_omega(B2, omega):

@@ -13,6 +13,7 @@ kernels. Full-space domains add their element forces on their own rows (the S: b
 import time
 
 import numpy as np
+from numba import njit
 
 from ..errors import SceneError
 from ..fem.assembly import assemble_matrix, assemble_vector
@@ -22,6 +23,23 @@ from ..threads import pick
 from .reconstruct import loads_kernel, loads_kernel_serial
 from .coupling import (interface_jacobian, interface_jacobian_serial, project_coupling_full, project_coupling_left,
                        project_forces, skew_batch, spring_forces)
+
+
+@njit(cache=True)
+def gravity_rows_kernel(mass_moment, r, q_index, R, g, total_mass, movers, lin_index, F):
+    """Gravity g (3,) on every subspace domain's rows of F (n_gen,), written: on the modes
+    F[q_index[d, a]] = sum_i mass_moment[d, i, a] (R_d^T g)_i (a < r[d]), on a movable
+    frame's linear rows m_d g. mass_moment (D, 3, r_max), R (D, 3, 3), total_mass (D,),
+    movers (M,), lin_index (M, 3). One pass for two einsums and two masked scatters."""
+    for d in range(r.shape[0]):
+        g0 = R[d, 0, 0] * g[0] + R[d, 1, 0] * g[1] + R[d, 2, 0] * g[2]
+        g1 = R[d, 0, 1] * g[0] + R[d, 1, 1] * g[1] + R[d, 2, 1] * g[2]
+        g2 = R[d, 0, 2] * g[0] + R[d, 1, 2] * g[1] + R[d, 2, 2] * g[2]
+        for a in range(r[d]):
+            F[q_index[d, a]] = mass_moment[d, 0, a] * g0 + mass_moment[d, 1, a] * g1 + mass_moment[d, 2, a] * g2
+    for m in range(movers.shape[0]):
+        for i in range(3):
+            F[lin_index[m, i]] = total_mass[movers[m]] * g[i]
 
 
 class GeneralisedForces:
@@ -209,9 +227,8 @@ class GeneralisedForces:
         if gravity is None:
             return F
         g = np.asarray(gravity, dtype=np.float64)
-        modal = np.einsum("dia,di->da", L.mass_moment, np.einsum("dji,j->di", frames.R, g))
-        F[L.modal_rows] = modal[L.mask]
-        F[L.lin_index] = L.total_mass[L.movers, None] * g
+        gravity_rows_kernel(L.mass_moment, L.r, L.q_index, np.ascontiguousarray(frames.R), g, L.total_mass,
+                            L.movers, L.lin_index, F)
         if self.F:
             F[self.S:] = self._ff_mass * g[self._ff_axis]
         return F
