@@ -365,7 +365,7 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
 @njit(cache=True, parallel=True)
 def sum_chunks(groups, group_chunks, sizes, offsets, P, g, A, G):
     """A[k, l] += sum of the pair's chunk products P[c] (in chunk order), for every domain
-    pair k <= l of groups (n_g, 2), and A[l, k] += its transpose; on a diagonal pair (k, k)
+    pair k <= l of groups (n_g, 3: k, l, first entry), and A[l, k] += its transpose; on a diagonal pair (k, k)
     also G[k] += sum of its chunks' g[c] (G of length 0: forces not wanted). group_chunks
     (n_g + 1,) the first chunk of each pair. Parallel over pairs, each writing only its own
     blocks (and only pair (k, k) writes G's rows of k)."""
@@ -400,11 +400,12 @@ interface_jacobian_serial = serial_twin(interface_jacobian)
 
 class TwoPhaseProjection:
     """G += J^T f and A += J^T K J of coupling elements (subspace-only systems) in two
-    phases: per-vertex K J and force sums, then one GEMM per domain pair,
-    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, both run one chunk of a pair's entries at a
-    time (chunk_products), with J^T f, and the chunks summed (sum_chunks). About a third of the flops of the per-element-pair product, and the
-    O(n_I s^2) part runs in BLAS on contiguous blocks. All of it is compiled: no Python
-    loop over domains or domain pairs.
+    phases: per-entry K J and force sums, then one GEMM per domain pair,
+    A[k, l] += sum_{a in k} J_a^T (K J)_{a, l}, both run on one chunk of a pair's entries
+    at a time (chunk_products, with J^T f), and the chunks summed (sum_chunks). About a
+    third of the flops of the per-element-pair product, and the O(n_I s^2) part runs in
+    BLAS on contiguous blocks. All of it is compiled: no Python loop over domains or
+    domain pairs.
 
     chunk: entries per chunk. Measured on armadillo_class (7,013 entries, s_max 26, one BLAS
     thread, min of 200): 64 as fast as 32 and 128; against the former two passes over all
