@@ -132,3 +132,33 @@ def test_explicit_fictitious_rows_and_gravity_rows_write_each_domains_own_rows()
     modal = np.einsum("dia,di->da", mass_moment, np.einsum("dji,j->di", d["R"], g))
     np.testing.assert_allclose(G[d["q_index"][d["mask"]]], modal[d["mask"]], rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(G[lin_index], total_mass[movers, None] * g, rtol=1e-15)
+
+
+def test_global_rows_kernel_is_the_rigid_motion_on_the_frames_rows():
+    """fictitious.global_rows_kernel against _rigid_Q's, _global_fictitious's and
+    _coriolis_rotate's numpy formulas (FictitiousTerms), on three of four frames movable."""
+    from mdss_ros.reduced.fictitious import global_rows_kernel
+    rng = np.random.default_rng(4)
+    D, n = 4, 30
+    c = rng.normal(size=(D, 3))
+    movers = np.array([0, 2, 3])
+    lin_index = 10 + 6 * np.arange(3)[:, None] + np.arange(3)
+    ang_index = lin_index + 3
+    m = rng.uniform(1, 2, D)
+    C, V, W = rng.normal(size=3), rng.normal(size=3), rng.normal(size=3)
+    Rc = exp_so3(rng.normal(size=3))
+    Q_in = rng.normal(size=n)
+    for rigid, angular_only, centrifugal in ((True, False, False), (True, True, False), (False, False, True),
+                                             (False, False, False)):
+        Q = np.full(n, 7.0)
+        global_rows_kernel(c, movers, lin_index, ang_index, m, C, V, W, rigid, angular_only, centrifugal, Rc, Q_in, Q)
+        expect = np.full(n, 7.0)
+        if rigid:
+            expect[ang_index] = W
+            if not angular_only:
+                expect[lin_index] = V + cross(W, c[movers] - C)
+        elif centrifugal:
+            expect[lin_index] = -m[movers, None] * cross(W, cross(W, c[movers] - C))
+        else:
+            expect[lin_index] = Q_in[lin_index] @ Rc.T
+        np.testing.assert_allclose(Q, expect, rtol=1e-14, atol=1e-14)

@@ -76,6 +76,39 @@ def momentum_kernel(m, c, v, w, R, inertia, out):
             out[3 + i, j] = I[i, j]
 
 
+@njit(cache=True)
+def global_rows_kernel(c, movers, lin_index, ang_index, total_mass, C, V, W, rigid, angular_only, centrifugal, Rc,
+                       Q_in, Q):
+    """The free body's mean rigid motion (C, V, W) (3,) each on the frames' rows of a
+    generalised vector, one pass over the movable domains d = movers[m] (c (D, 3) their
+    centres, lin_index, ang_index (M, 3) their rows, total_mass (D,)):
+      rigid:        Q[ang] = W, and unless angular_only Q[lin] = V + W x (c_d - C)
+                    (FictitiousTerms._rigid_Q);
+      centrifugal:  Q[lin] = -m_d W x (W x (c_d - C))   (_global_fictitious);
+      otherwise:    Q[lin] = Rc Q_in[lin], Rc (3, 3)    (_coriolis_rotate).
+    Q (n_gen,) is written on those rows only."""
+    for m in range(movers.shape[0]):
+        d = movers[m]
+        x0, x1, x2 = c[d, 0] - C[0], c[d, 1] - C[1], c[d, 2] - C[2]
+        if rigid:
+            for i in range(3):
+                Q[ang_index[m, i]] = W[i]
+            if not angular_only:
+                Q[lin_index[m, 0]] = V[0] + (W[1] * x2 - W[2] * x1)
+                Q[lin_index[m, 1]] = V[1] + (W[2] * x0 - W[0] * x2)
+                Q[lin_index[m, 2]] = V[2] + (W[0] * x1 - W[1] * x0)
+        elif centrifugal:
+            y0, y1, y2 = W[1] * x2 - W[2] * x1, W[2] * x0 - W[0] * x2, W[0] * x1 - W[1] * x0
+            mk = -total_mass[d]
+            Q[lin_index[m, 0]] = mk * (W[1] * y2 - W[2] * y1)
+            Q[lin_index[m, 1]] = mk * (W[2] * y0 - W[0] * y2)
+            Q[lin_index[m, 2]] = mk * (W[0] * y1 - W[1] * y0)
+        else:
+            q0, q1, q2 = Q_in[lin_index[m, 0]], Q_in[lin_index[m, 1]], Q_in[lin_index[m, 2]]
+            for i in range(3):
+                Q[lin_index[m, i]] = q0 * Rc[i, 0] + q1 * Rc[i, 1] + q2 * Rc[i, 2]
+
+
 class FictitiousTerms:
     """Fictitious forces and the free body's mean rigid motion, for ReducedModel. Mixed into
     reduced_model.ReducedModel, whose build provides the attributes it reads."""
@@ -109,15 +142,21 @@ class FictitiousTerms:
                         np.ascontiguousarray(R), np.ascontiguousarray(inertia), out)
         return out[0], out[1], out[2], out[3:]
 
+    def _global_rows(self, C, V, W, out, rigid=False, angular_only=False, centrifugal=False, Rc=None, Q_in=None):
+        """global_rows_kernel on the movable frames' rows of out (n_gen,)."""
+        L = self.layout
+        f64 = np.float64
+        global_rows_kernel(np.ascontiguousarray(self.frames.c), L.movers, L.lin_index, L.ang_index, L.total_mass,
+                           np.asarray(C, dtype=f64), np.asarray(V, dtype=f64), np.asarray(W, dtype=f64), rigid,
+                           angular_only, centrifugal, np.eye(3) if Rc is None else Rc,
+                           out if Q_in is None else Q_in, out)
+
     def _rigid_Q(self, gm, angular_only=False):
         """Generalised velocities of the rigid motion (V, W) about C (n_gen,);
         angular_only: W on the domains' angular rows, zero elsewhere."""
         C, V, W = gm[:3]
-        L = self.layout
         Q = np.zeros(self.n_gen)
-        Q[L.ang_index] = W
-        if not angular_only:
-            Q[L.lin_index] = V + cross(W, self.frames.c[L.movers] - C)
+        self._global_rows(C, V, W, Q, rigid=True, angular_only=angular_only)
         if self.F and not angular_only:
             Q[self.S:] = self._full_free(V + cross(W, self.x_full - C))
         return Q
@@ -127,9 +166,8 @@ class FictitiousTerms:
         vertices (n_gen,). The angular rows take W through the momentum form, and the
         Coriolis force through _coriolis_rotate."""
         C, V, W = gm[:3]
-        L = self.layout
         F = np.zeros(self.n_gen)
-        F[L.lin_index] = -L.total_mass[L.movers, None] * cross(W, cross(W, self.frames.c[L.movers] - C))
+        self._global_rows(C, V, W, F, centrifugal=True)
         if self.F:
             f = -self.vertex_mass[:, None] * cross(W, cross(W, self.x_full - C))
             F[self.S:] = self._full_free(f)
@@ -142,8 +180,7 @@ class FictitiousTerms:
         the rotation keeps |v_rel| and sum m v_rel = 0 exactly."""
         Rc = exp_so3(-2.0 * dt * gm[2])
         Q = Q_rel.copy()
-        lin = self.layout.lin_index
-        Q[lin] = Q_rel[lin] @ Rc.T
+        self._global_rows(gm[0], gm[1], gm[2], Q, Rc=Rc, Q_in=Q_rel)
         if self.F:
             Q[self.S:] = self._full_free(self._full_expand(Q_rel[self.S:]) @ Rc.T)
         return Q
