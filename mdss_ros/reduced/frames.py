@@ -207,6 +207,16 @@ def _sandwich(R, I, out, T):
 
 
 @njit(cache=True)
+def _predicted_world_inertia(R, w, dt, I, out, E, X):
+    """out = Rp I Rp^T (3, 3), Rp = exp([dt w]x) R: a body-frame inertia I in the world at
+    the rotation predicted over dt (dt = 0: R itself, exp(0) being exactly I). E, X (3, 3)
+    scratch."""
+    exp_so3_into(dt * w[0], dt * w[1], dt * w[2], E)
+    _mul3(E, R, X)
+    _sandwich(X, I, out, E)
+
+
+@njit(cache=True)
 def predict_kernel(dt, c0, R0, w0, v_new, w_new, movable, carry, C, V, W, I_start, I_end, c, R, v, w):
     """FrameState.predict for every frame d (shapes (D, 3), (D, 3, 3)): writes c, R, v, w.
     A fixed frame keeps c0, R0 with zero velocities. Each new rotation is the product
@@ -255,9 +265,7 @@ def predict_kernel(dt, c0, R0, w0, v_new, w_new, movable, carry, C, V, W, I_star
             _mul3(E, R0[d], X)
         orthonormalise_into(X, R[d], T)
         # Momentum form: h = Rp I_s Rp^T w_a at the predicted rotation, then w = (R I_e R^T)^-1 h.
-        exp_so3_into(dt * w0[d, 0], dt * w0[d, 1], dt * w0[d, 2], E)
-        _mul3(E, R0[d], X)
-        _sandwich(X, I_start[d], Ip, T)
+        _predicted_world_inertia(R0[d], w0[d], dt, I_start[d], Ip, E, X)
         if carry:
             a0, a1, a2 = W[0] + w_new[d, 0], W[1] + w_new[d, 1], W[2] + w_new[d, 2]
         else:
@@ -289,12 +297,9 @@ def world_inertia_kernel(R, w, dt, inertia, movers, out):
     body-frame, movers (M,), out (M, 3, 3)."""
     E = np.empty((3, 3))
     X = np.empty((3, 3))
-    T = np.empty((3, 3))
     for m in range(movers.shape[0]):
         d = movers[m]
-        exp_so3_into(dt * w[d, 0], dt * w[d, 1], dt * w[d, 2], E)
-        _mul3(E, R[d], X)
-        _sandwich(X, inertia[d], out[m], T)
+        _predicted_world_inertia(R[d], w[d], dt, inertia[d], out[m], E, X)
 
 
 @njit(cache=True)

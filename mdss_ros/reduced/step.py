@@ -297,8 +297,8 @@ class Step:
         # A pinned body's frames do not turn: no inertia is needed.
         mv = L.movers
         inertia = self._inertia_of(q) if len(mv) else None
-        frames = frames0.predict(v, w, dt, self.movable, inertia0 if len(mv) else L.inertia0,
-                                 inertia if len(mv) else L.inertia0, None if gm is None else gm[:3])
+        I_start, I_end = (inertia0, inertia) if len(mv) else (L.inertia0, L.inertia0)   # unread when pinned
+        frames = frames0.predict(v, w, dt, self.movable, I_start, I_end, None if gm is None else gm[:3])
         if gm is None:
             x_full = x0 + dt * v_full if self.F else x0
         elif self.F:
