@@ -31,6 +31,33 @@ def test_every_element_with_weight_one_is_exact(small):
             assert np.linalg.norm(K1 - K2) <= 1e-12 * np.linalg.norm(K1)
 
 
+def test_without_cubature_the_model_steps_on_every_element_as_a_weight_one_sample(small):
+    """model.cubature.samples: 0 on a small model: its forces go through the sample kernels
+    with every domain element at weight 1 (reduced_model.exact_samples), and they are each
+    domain's exact sparse-path forces; above EXACT_SAMPLES_MAX_MODES it keeps that path."""
+    from mdss_ros.reduced import reduced_model
+    sim, training = small
+    m = sim.model
+    assert m.samples is not None
+    assert [len(st.wV[0]) for _, st in m.samples.stacks] == [max(len(d.forces.tets) for d in m.subspace)]
+    for i in (3, 17, 29):
+        q = np.zeros((len(m.subspace), m.layout.r_max))
+        for k, dom in enumerate(m.subspace):
+            q[k, :dom.r] = training.q[k][i]
+        e, g, K = m.samples.evaluate(q)
+        for k, dom in enumerate(m.subspace):
+            e1, g1, K1 = dom.reduced_tangent(q[k, :dom.r])
+            assert abs(e[k] - e1) <= 1e-12 * abs(e1)
+            assert np.linalg.norm(g[k, :dom.r] - g1) <= 1e-12 * np.linalg.norm(g1)
+            assert np.linalg.norm(K[k, :dom.r, :dom.r] - K1) <= 1e-12 * np.linalg.norm(K1)
+    cap = reduced_model.EXACT_SAMPLES_MAX_MODES
+    try:
+        reduced_model.EXACT_SAMPLES_MAX_MODES = m.layout.r_max - 1
+        assert reduced_model.exact_samples(m.subspace) is None
+    finally:
+        reduced_model.EXACT_SAMPLES_MAX_MODES = cap
+
+
 def test_training_poses_are_deformed_and_in_best_fit_frames(small):
     sim, training = small
     assert training.n_poses == 30 and training.source == "full"

@@ -57,6 +57,34 @@ def _jsonable(x):
     return x
 
 
+#: Without cubature, domains with at most this many modes evaluate every element as a
+#: weight-1 sample (sampled_forces kernels) instead of assembling a sparse K and forming
+#: U^T K U. Measured (session 22, `_evaluate` medians, one domain of a box): 240 tets at
+#: r = 12, 0.39-0.57 -> 0.19-0.21 ms; 1,920 tets at r = 12, 1.5-1.7 -> 1.0 ms; 15,360 tets
+#: at r = 20, 15-20 -> 13-16 ms; but 1,920 tets at r = 30, 1.9-2.4 -> 2.3-2.9 ms (the
+#: per-sample 9 x 9 x r product outgrows the element path).
+EXACT_SAMPLES_MAX_MODES = 20
+#: ... and while the samples' G (s, 9, r) of all domains stays within this many bytes.
+EXACT_SAMPLES_MAX_BYTES = 64 * 2**20
+
+
+def exact_samples(subspace):
+    """Every domain element of every domain as a cubature sample of weight 1
+    (sampled_forces.SampledDomainForces: with all elements at weight 1 the sampled force
+    and stiffness are the domain's exact ones), or None when a domain has more than
+    EXACT_SAMPLES_MAX_MODES modes or no elements, or G would exceed EXACT_SAMPLES_MAX_BYTES."""
+    from .sampled_forces import SampledDomainForces
+    fms = [dom.forces for dom in subspace]
+    if any(getattr(fm, "tets", None) is None or len(fm.tets) == 0 for fm in fms):
+        return None
+    if max(dom.r for dom in subspace) > EXACT_SAMPLES_MAX_MODES:
+        return None
+    if sum(72 * len(fm.tets) * dom.r for dom, fm in zip(subspace, fms)) > EXACT_SAMPLES_MAX_BYTES:
+        return None
+    return [SampledDomainForces.build(dom.U3, fm.tets, fm.geom.grads, fm.geom.volume, fm.material)
+            for dom, fm in zip(subspace, fms)]
+
+
 class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, FictitiousTerms, GuardTerms):
     """Multi-domain subspace model of a Body; see the module docstring.
 
@@ -333,11 +361,14 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         return (lambda f: self._step(f, None, None, terms)), self.vertex_positions
 
     def _stack_samples(self):
-        """All domains' cubature samples in one array (one kernel call a step), or None when
-        a domain evaluates every element (no cubature: its exact sparse path)."""
+        """All domains' cubature samples in one array (one kernel call a step). Without
+        cubature, every domain element as a sample of weight 1 (the exact forces, through
+        the same kernels) when that is small and cheap (exact_samples), else None: each
+        domain's exact sparse path (SubspaceDomain.reduced_tangent)."""
         sampled = [dom.sampled for dom in self.subspace]
-        ok = bool(sampled) and all(sm is not None for sm in sampled)
-        self.samples = StackedSamples(sampled, self.layout.r_max, self.body.material) if ok else None
+        if sampled and any(sm is None for sm in sampled):
+            sampled = exact_samples(self.subspace)
+        self.samples = StackedSamples(sampled, self.layout.r_max, self.body.material) if sampled else None
 
     def _restore_cubature(self, arrays, meta):
         from .sampled_forces import SampledDomainForces
@@ -722,7 +753,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
                          f"{self.cubature_info.get('training_poses', '?')} poses from the {src} model"
                          + (" (loaded from the cache)" if self.cubature_info.get("cached") else ""))
         else:
-            lines.append("cubature: off (model.cubature.samples: 0): every domain element every step")
+            lines.append("cubature: off (model.cubature.samples: 0): every domain element every step"
+                         + (", as weight-1 samples" if self.samples is not None else ""))
         if self.body.pinned.size == 0 and self.movable.all():
             lines.append("free body (no pins): the mean rigid motion is integrated exactly about the mass "
                          "centre and angular momentum is rebalanced each step")
