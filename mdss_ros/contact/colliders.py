@@ -74,7 +74,15 @@ class Collider:
 
     @property
     def rotation(self):
-        return matrix_from_quat(self.orientation)
+        """R (3, 3) of the orientation, kept for its value (the orientation's bytes): the
+        contact search, the rows and the slip read it several times a step, 10 us a time."""
+        key = np.asarray(self.orientation, dtype=np.float64).tobytes()
+        kept = self.__dict__.get("_rotation_kept")
+        if kept is None or kept[0] != key:
+            R = matrix_from_quat(self.orientation)
+            R.flags.writeable = False
+            kept = self.__dict__["_rotation_kept"] = (key, R)
+        return kept[1]
 
     def at(self, position, orientation):
         """A copy of this collider at another pose (for checks at a start or trial pose)."""

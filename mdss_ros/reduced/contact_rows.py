@@ -129,22 +129,26 @@ class FrictionalRows:
         friction.frictional_correction."""
         return _FrictionalRowsAt(self, v)
 
+    def _product_rows(self, contacts):
+        """The rows n, t1, t2 of built contacts (k,) for products only (_rows' second)."""
+        r = rows_of(self.slot[contacts])
+        return self.rows3.take(r) if isinstance(self.rows3, ContactRowEntries) else self.rows3[r]
+
     def force(self, lam):
         """C3^T lam (n_gen,) for forces lam (m, 3), nonzero on built contacts only."""
-        on = np.flatnonzero(np.any(lam != 0.0, axis=1))
+        on = np.flatnonzero(lam.any(axis=1))
         if on.size == 0:
             return np.zeros(self.C.shape[1])
-        _, rows = self._rows(on)
+        rows = self._product_rows(on)
         f = lam[on].ravel()
         return rows.rmatvec(f) if isinstance(rows, ContactRowEntries) else rows.T @ f
 
     def work(self, lam, Q):
         """lam . (C3 Q + rigid3): the work of the forces lam (m, 3) over the step's Q."""
-        on = np.flatnonzero(np.any(lam != 0.0, axis=1))
+        on = np.flatnonzero(lam.any(axis=1))
         if on.size == 0:
             return 0.0
-        _, rows = self._rows(on)
-        return float(lam[on].ravel() @ (rows @ Q + self.rigid3[on].ravel()))
+        return float(lam[on].ravel() @ (self._product_rows(on) @ Q + self.rigid3[on].ravel()))
 
 
 class _FrictionalRowsAt(FrictionRows):
