@@ -254,6 +254,21 @@ def stacked_kernel(G, wV, q, kind_id, params, want_hessian, project, energy_out,
 stacked_kernel_serial = serial_twin(stacked_kernel)
 
 
+@njit(cache=True)
+def sum_samples(g, out):
+    """out[d] = sum_s g[d, s] for g (D, s, r), out (D, r) written: the samples' forces
+    summed per domain, s = 0, 1, ... in turn, as numpy's g.sum(1) adds them (the same bits).
+    numpy's strided reduction took 38 us on star_limbs at 11 domains (11 x 150 x 12) and 76
+    on octopus's 17 x 150 x 20, this loop 6 and 14 (session 22)."""
+    D, s_count, r = g.shape
+    for d in range(D):
+        for t in range(r):
+            out[d, t] = g[d, 0, t]
+        for k in range(1, s_count):
+            for t in range(r):
+                out[d, t] += g[d, k, t]
+
+
 @njit(cache=True, parallel=True)
 def stacked_stiffness(G, CG, K):
     """K[d] = G[d]^T CG[d] for every domain d, one GEMM each, the domains over the threads.
@@ -302,7 +317,8 @@ class SampleStack:
         pick(stacked_kernel, stacked_kernel_serial, D * s, weight=4)(
             self.G, self.wV, q, m.kind_id, m.params, bool(want_hessian), False,
             self.energy, self.g, CG, self.det)
-        energy, g = self.energy.sum(1), self.g.sum(1)
+        energy, g = self.energy.sum(1), np.empty((D, r))
+        sum_samples(self.g, g)
         if not want_hessian:
             return energy, g, None
         K = np.empty((D, r, r))
