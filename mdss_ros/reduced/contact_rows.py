@@ -90,11 +90,14 @@ class FrictionalRows:
             return
         verts, xv, normals, weights, first, end = self.corners
         t = tangent_basis(normals[first[new]]) if tangents is None else tangents[new]
-        counts = end[new] - first[new]
-        starts = np.cumsum(counts) - counts
-        corner = np.repeat(first[new] - starts, counts) + np.arange(int(counts.sum()))
-        dirs = np.concatenate([normals[corner][:, None, :], np.repeat(t, counts, axis=0)], axis=1) \
-            * weights[corner][:, None, None]
+        if len(verts) == len(self.g_n):            # one corner row per contact (no face contacts)
+            corner, starts, t_corner = first[new], np.arange(new.size), t
+        else:
+            counts = end[new] - first[new]
+            starts = np.cumsum(counts) - counts
+            corner = np.repeat(first[new] - starts, counts) + np.arange(int(counts.sum()))
+            t_corner = np.repeat(t, counts, axis=0)
+        dirs = np.concatenate([normals[corner][:, None, :], t_corner], axis=1) * weights[corner][:, None, None]
         built = self.model._rows_along(dirs, verts[corner], xv[corner], starts, self.dt)
         if self.rows3 is None:
             self.rows3 = built
@@ -214,7 +217,8 @@ class ContactRows:
         # The normal rows of every contact. With friction a contact's tangential rows are
         # built when the Coulomb solve asks for them (FrictionalRows), except that the
         # residual compliance's rows need every contact's three directions at once.
-        corners = (verts, xv, normals, weights, starts, np.r_[starts[1:], len(rows)])
+        ends = np.arange(1, len(rows) + 1) if one_corner else np.append(starts[1:], len(rows))
+        corners = (verts, xv, normals, weights, starts, ends)
         dirs = normals[:, None, :] * weights[:, None, None]
         C = self._rows_along(dirs, verts, xv, starts, dt)
         tangents = None
