@@ -150,6 +150,10 @@ def test_block_cholesky_on_a_ring_with_fill():
         Z1, Z2 = bc.forward(b), bc.forward(b2)
         np.testing.assert_allclose(Z1.T @ Z2, b.T @ np.linalg.solve(A, b2), rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(bc.backward(Z2), np.linalg.solve(A, b2), rtol=1e-10, atol=1e-12)
+        # A second matrix through the same factor object: permute_lower copies only the
+        # pattern's blocks, so the fill blocks the first factor wrote must be reset from A.
+        A2 = A + np.diag(rng.uniform(0.5, 2.0, len(A)))
+        np.testing.assert_allclose(bc.factor(A2).solve(b), np.linalg.solve(A2, b), rtol=1e-10, atol=1e-12)
 
 
 def test_contact_solves_from_half_sweeps_equal_the_full_solves():

@@ -43,14 +43,28 @@ def symbolic_elimination(n_blocks, edges, order):
 
 
 @njit(cache=True)
-def permute_lower(A, perm, out):
-    """out[i, j] = A[perm[i], perm[j]] for j <= i (the triangle the factor reads): a 2-D
-    fancy-index copy of the whole matrix took 40 % of the factor's time."""
-    n = perm.shape[0]
-    for i in range(n):
-        pi = perm[i]
-        for j in range(i + 1):
-            out[i, j] = A[pi, perm[j]]
+def permute_lower(A, perm, po, later_ptr, later_idx, out):
+    """out[i, j] = A[perm[i], perm[j]] on the blocks the factor reads and writes: the lower
+    triangle of each diagonal block p (rows po[p]:po[p + 1] in elimination order) and the
+    blocks (q, p) of its later neighbours q (later_idx[later_ptr[p]:later_ptr[p + 1]],
+    fill included). Every other entry of out is never read or written by factor_blocks or
+    the sweeps, and stays as it was (zero). perm keeps each domain's rows together
+    (BlockCholesky.perm), so a block's columns are read as one run. A 2-D fancy-index copy of the whole matrix took
+    40 % of the factor's time; the whole lower triangle, 82 us of octopus's 235 (S = 442,
+    17 domains: its blocks are about a fifth of that triangle; session 22)."""
+    for p in range(po.shape[0] - 1):
+        a0, a1 = po[p], po[p + 1]
+        c0 = perm[a0]                   # a block's columns are one contiguous run of A's
+        for i in range(a0, a1):
+            pi = perm[i]
+            for j in range(i + 1 - a0):
+                out[i, a0 + j] = A[pi, c0 + j]
+        for t in range(later_ptr[p], later_ptr[p + 1]):
+            q = later_idx[t]
+            for i in range(po[q], po[q + 1]):
+                pi = perm[i]
+                for j in range(a1 - a0):
+                    out[i, a0 + j] = A[pi, c0 + j]
 
 
 @njit(cache=True)
@@ -223,7 +237,7 @@ class BlockCholesky:
         if self.L is None:
             self.L = np.zeros((len(self.perm), len(self.perm)))     # reused: only its lower triangle is read
         L = self.L
-        permute_lower(np.ascontiguousarray(A), self.perm, L)
+        permute_lower(np.ascontiguousarray(A), self.perm, self.po, self.later_ptr, self.later_idx, L)
         failed = factor_blocks(L, self.po, self.later_ptr, self.later_idx)
         if failed >= 0:
             raise NotPositiveDefinite(f"diagonal block of domain {self.order[failed]} is not positive definite")
