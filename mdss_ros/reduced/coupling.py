@@ -279,35 +279,61 @@ def coupling_entries(elem, vertex_sub):
     return entry_vertex.astype(np.int64), entry_dom.astype(np.int64), pair_entry.reshape(n_c, k, k).astype(np.int64)
 
 
+def neighbour_slots(elem, pair_entry, n_e):
+    """Each entry's distinct neighbour vertices: (nb_ptr (n_e + 1,), nb_vertex (n_nb,)) as
+    CSR lists, and pair_slot (n_c, k, k), for every element vertex pair (a, b) with an entry,
+    the index in nb_vertex of its b (-1 where pair_entry is -1). Built once per coupling set."""
+    e_idx, a_idx, b_idx = np.nonzero(pair_entry >= 0)
+    ent = pair_entry[e_idx, a_idx, b_idx]
+    lb = elem[e_idx, b_idx]
+    n_I = int(elem.max()) + 1 if elem.size else 1
+    keys, inverse = np.unique(ent * n_I + lb, return_inverse=True)
+    nb_ptr = np.concatenate([[0], np.cumsum(np.bincount(keys // n_I, minlength=n_e))]).astype(np.int64)
+    pair_slot = np.full(pair_entry.shape, -1, dtype=np.int64)
+    pair_slot[e_idx, a_idx, b_idx] = inverse.ravel()
+    return nb_ptr, (keys % n_I).astype(np.int64), pair_slot
+
+
 @njit(cache=True, parallel=True)
-def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_vertex, entry_diag, P, g):
+def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, pair_slot, nb_ptr, nb_vertex, max_nb, ptr, inc,
+                   entry_vertex, entry_diag, P, g):
     """Both phases of the projection, one chunk of a domain pair's entries at a time, in
     cache: for each entry en = (a, l) of chunk c, its K J rows
-        KJ[en] = sum of w_e K_e[a, b] J_b over the elements e at a and their vertices b in l
-    (3, s_l), and then P[c] = JE_c^T KJ_c (s_k, s_l), the chunk's share of A[k, l] (JE_c:
-    the J rows of the chunk's vertices a, all in domain k). Where l is a's own domain
-    (entry_diag: each vertex has one such entry) it also adds J_a^T f_a to g[c] (s_k,),
-    with f_a = sum of w_e f_e[a] over the elements at a: the chunk's share of G on k.
+        KJ[en] = sum_b (sum_e w_e K_e[a, b]) J_b
+    over its distinct neighbours b in l (nb_vertex[nb_ptr[en]:nb_ptr[en + 1]]) and the
+    elements e at a that hold b (3, s_l), and then P[c] = JE_c^T KJ_c (s_k, s_l), the
+    chunk's share of A[k, l] (JE_c: the J rows of the chunk's vertices a, all in domain k).
+    Where l is a's own domain (entry_diag: each vertex has one such entry) it also adds
+    J_a^T f_a to g[c] (s_k,), with f_a = sum of w_e f_e[a] over the elements at a: the
+    chunk's share of G on k.
 
     chunks (n_ch, 4): first and one-past-last entry of each chunk, s_k and s_l (the
     generalised columns of domains k and l; J is zero beyond them); w (n_c,) element
-    weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); P (n_ch,
-    s_max, s_max) and g (n_ch, s_max) are written on [:s_k, :s_l] and [:s_k].
+    weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); pair_slot
+    (n_c, k, k) the neighbour slot of each vertex pair (neighbour_slots), max_nb the most
+    neighbours of an entry; P (n_ch, s_max,
+    s_max) and g (n_ch, s_max) are written on [:s_k, :s_l] and [:s_k].
 
-    Why chunks: the former two passes wrote every entry's K J (4.4 MB on armadillo_class)
-    and a copy of its J rows (4.4 MB more), then read both back for one GEMM per pair,
-    all out of cache; a chunk's 2 x 3 x 64 rows stay in the core's L2 between the two
-    phases (and J^T f, a pass over J of its own before, reads the J rows copied here).
-    Parallel over chunks, each writing only its own P[c] and g[c], so the result does not
-    depend on the thread schedule. Only the domains' own columns are formed: an automatic
-    model's arms (r = 6, s = 12) beside a pinned core of 30 modes (s_max = 30) were 2.5-6x
-    the work of their own widths."""
+    Why the 3 x 3 blocks are summed per neighbour before they meet J: a vertex pair (a, b)
+    is shared by several elements (armadillo_class: 31,770 element pairs, 20,432 distinct;
+    octopus 12,107 and 5,844), and each product with J is 18 s_l flops against 9 for a
+    block sum: chunk_products went 0.70 -> 0.57 ms on octopus and 2.25 -> 2.07 ms on
+    armadillo_class (medians of 300, one BLAS thread; session 22). The sums change order
+    (2e-16 of P). Why chunks: the former two passes wrote every entry's K J (4.4 MB on
+    armadillo_class) and a copy of its J rows (4.4 MB more), then read both back for one
+    GEMM per pair, all out of cache; a chunk's 2 x 3 x 64 rows stay in the core's L2
+    between the two phases (and J^T f, a pass over J of its own before, reads the J rows
+    copied here). Parallel over chunks, each writing only its own P[c] and g[c], so the
+    result does not depend on the thread schedule. Only the domains' own columns are
+    formed: an automatic model's arms (r = 6, s = 12) beside a pinned core of 30 modes
+    (s_max = 30) were 2.5-6x the work of their own widths."""
     k = elem.shape[1]
     for c in prange(chunks.shape[0]):
         e0, e1, sk, sl = chunks[c, 0], chunks[c, 1], chunks[c, 2], chunks[c, 3]
         n = e1 - e0
         KJ = np.zeros((3 * n, sl))
         JE = np.empty((3 * n, sk))
+        Kb = np.empty((max_nb, 9))
         for t in range(sk):
             g[c, t] = 0.0
         for j in range(n):
@@ -317,6 +343,10 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
             for i in range(3):
                 for t in range(sk):
                     JE[3 * j + i, t] = J[la, i, t]
+            nb0, nb1 = nb_ptr[en], nb_ptr[en + 1]
+            for u in range(nb1 - nb0):
+                for v in range(9):
+                    Kb[u, v] = 0.0
             f0 = 0.0
             f1 = 0.0
             f2 = 0.0
@@ -331,29 +361,27 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, ptr, inc, entry_ver
                 for b in range(k):
                     if pair_entry[e, a, b] != en:
                         continue             # b in another domain, or full-space
-                    lb = elem[e, b]
-                    # The 3 x 3 block, weighted, then one pass along the columns that reads
-                    # each J value once for all three rows (a loop over rows outside re-read
-                    # J three times: 1.6x slower, load-bound).
-                    k00 = we * K_e[e, 3 * a, 3 * b]
-                    k01 = we * K_e[e, 3 * a, 3 * b + 1]
-                    k02 = we * K_e[e, 3 * a, 3 * b + 2]
-                    k10 = we * K_e[e, 3 * a + 1, 3 * b]
-                    k11 = we * K_e[e, 3 * a + 1, 3 * b + 1]
-                    k12 = we * K_e[e, 3 * a + 1, 3 * b + 2]
-                    k20 = we * K_e[e, 3 * a + 2, 3 * b]
-                    k21 = we * K_e[e, 3 * a + 2, 3 * b + 1]
-                    k22 = we * K_e[e, 3 * a + 2, 3 * b + 2]
-                    r = 3 * j
-                    for t in range(sl):
-                        j0 = J[lb, 0, t]
-                        j1 = J[lb, 1, t]
-                        j2 = J[lb, 2, t]
-                        KJ[r, t] += k00 * j0 + k01 * j1 + k02 * j2
-                        KJ[r + 1, t] += k10 * j0 + k11 * j1 + k12 * j2
-                        KJ[r + 2, t] += k20 * j0 + k21 * j1 + k22 * j2
+                    u = pair_slot[e, a, b] - nb0
+                    for ii in range(3):
+                        for jj in range(3):
+                            Kb[u, 3 * ii + jj] += we * K_e[e, 3 * a + ii, 3 * b + jj]
+            r = 3 * j
+            for u in range(nb1 - nb0):
+                lb = nb_vertex[nb0 + u]
+                # One pass along the columns that reads each J value once for all three
+                # rows (a loop over rows outside re-read J three times: 1.6x slower,
+                # load-bound).
+                k00, k01, k02 = Kb[u, 0], Kb[u, 1], Kb[u, 2]
+                k10, k11, k12 = Kb[u, 3], Kb[u, 4], Kb[u, 5]
+                k20, k21, k22 = Kb[u, 6], Kb[u, 7], Kb[u, 8]
+                for t in range(sl):
+                    j0 = J[lb, 0, t]
+                    j1 = J[lb, 1, t]
+                    j2 = J[lb, 2, t]
+                    KJ[r, t] += k00 * j0 + k01 * j1 + k02 * j2
+                    KJ[r + 1, t] += k10 * j0 + k11 * j1 + k12 * j2
+                    KJ[r + 2, t] += k20 * j0 + k21 * j1 + k22 * j2
             if diag:
-                r = 3 * j
                 for t in range(sk):
                     g[c, t] += JE[r, t] * f0 + JE[r + 1, t] * f1 + JE[r + 2, t] * f2
         Pc = np.dot(JE.T, KJ)
@@ -446,6 +474,8 @@ class TwoPhaseProjection:
                                 np.repeat(self.sizes[self.groups[:, 0]], per_group),
                                 np.repeat(self.sizes[self.groups[:, 1]], per_group)], 1).astype(np.int64)
         self.entry_diag = (entry_dom == k_e)
+        self.nb_ptr, self.nb_vertex, self.pair_slot = neighbour_slots(elem, self.pair_entry, n_e)
+        self.max_nb = int(np.diff(self.nb_ptr).max(initial=0))
         self._buffers = None
 
     def add(self, f_e, K_e, J, G, A_ss, weights=None):
@@ -465,7 +495,7 @@ class TwoPhaseProjection:
         # s_max 26) took 0.30 ms in GEMMs on one thread, which its entry count alone did
         # not count as worth two.
         pick(chunk_products, chunk_products_serial, n_e, weight=max(4, s_max ** 2 // 64))(
-            self.chunks, self.elem, weights, f_e, K_e, J, self.pair_entry, self.ptr, self.inc,
-            self.entry_vertex, self.entry_diag, P, g)
+            self.chunks, self.elem, weights, f_e, K_e, J, self.pair_entry, self.pair_slot, self.nb_ptr,
+            self.nb_vertex, self.max_nb, self.ptr, self.inc, self.entry_vertex, self.entry_diag, P, g)
         pick(sum_chunks, sum_chunks_serial, len(self.chunks), weight=max(1, s_max ** 2 // 64))(
             self.groups, self.group_chunks, self.sizes, self.offsets, P, g, A_ss, np.zeros(0) if G is None else G)
