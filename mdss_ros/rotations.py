@@ -136,8 +136,8 @@ def cross(a, b):
         return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    # Written column by column into one array: np.stack's expand-and-concatenate was most
-    # of a 30-vector call's 15 us (the same values).
+    # Written column by column into one array instead of np.stack's expand-and-concatenate:
+    # 8.0 -> 7.3 us for a (3,) x (30, 3) call (min of 5,000), the same values.
     out = np.empty(np.broadcast_shapes(a.shape, b.shape))
     out[..., 0] = a1 * b2 - a2 * b1
     out[..., 1] = a2 * b0 - a0 * b2

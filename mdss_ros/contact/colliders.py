@@ -75,7 +75,8 @@ class Collider:
     @property
     def rotation(self):
         """R (3, 3) of the orientation, kept for its value (the orientation's bytes): the
-        contact search, the rows and the slip read it several times a step, 10 us a time."""
+        contact search, the rows and the slip read it three times a step, and
+        matrix_from_quat takes 6 us a call (min of 5,000)."""
         key = np.asarray(self.orientation, dtype=np.float64).tobytes()
         kept = self.__dict__.get("_rotation_kept")
         if kept is None or kept[0] != key:

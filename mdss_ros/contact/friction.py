@@ -49,7 +49,6 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from numba import njit
 
-from ..rotations import cross
 from .unilateral import Solves, contact_correction, member, solve_lcp
 
 
@@ -87,8 +86,8 @@ def tangent_basis(normals):
     """Two unit tangents (k, 2, 3) orthogonal to unit normals (k, 3) and to each other,
     right-handed (t1 x t2 = n); t1 is n crossed with the world axis least aligned with n
     (the first of them on a tie, as argmin). Compiled (_tangent_kernel): its numpy form (an
-    argmin, two crosses, a norm and a stack) took 88 us for the incline's 30 contacts,
-    called every step."""
+    argmin, two crosses, a norm and a stack) took 33 us for the incline's 30 contacts, this
+    1.8 us (min of 3,000; session 22)."""
     n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     out = np.empty((len(n), 2, 3))
     _tangent_kernel(n, out)
@@ -148,7 +147,7 @@ def solve_coulomb(W, g, mu, lam0=None, tol=1e-12):
     broken by more than PHYSICAL_TOL."""
     m = len(g) // 3
     if not (isinstance(mu, np.ndarray) and mu.shape == (m,) and mu.dtype == np.float64):
-        mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (m,))     # ~10 us: only when needed
+        mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (m,))     # 3 us: only when needed
     if lam0 is None:
         n_idx = 3 * np.arange(m)
         lam_n, _ = solve_lcp(W[np.ix_(n_idx, n_idx)], g[n_idx], tol=tol)
@@ -220,7 +219,7 @@ def _force_scale(g, rho, lam):
     the force the free step's overlap calls for, rho (-g_n)."""
     if len(rho) == 0:
         return 1e-300
-    # max(initial=0.0) (numpy's Python-level wrapper) was most of this call's 10-20 us.
+    # Without max(initial=0.0), numpy's Python-level path: 5.4 -> 3.9 us a call (min of 5,000).
     return max(float(np.abs(lam).max()), float((-g[0::3] * rho).max()), 0.0, 1e-300)
 
 

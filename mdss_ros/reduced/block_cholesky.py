@@ -49,9 +49,10 @@ def permute_lower(A, perm, po, later_ptr, later_idx, out):
     blocks (q, p) of its later neighbours q (later_idx[later_ptr[p]:later_ptr[p + 1]],
     fill included). Every other entry of out is never read or written by factor_blocks or
     the sweeps, and stays as it was (zero). perm keeps each domain's rows together
-    (BlockCholesky.perm), so a block's columns are read as one run. A 2-D fancy-index copy of the whole matrix took
-    40 % of the factor's time; the whole lower triangle, 82 us of octopus's 235 (S = 442,
-    17 domains: its blocks are about a fifth of that triangle; session 22)."""
+    (BlockCholesky.perm), so a block's columns are read as one run. A 2-D fancy-index copy
+    of the whole matrix took 40 % of the factor's time; the whole lower triangle 58-85 us
+    on octopus (S = 442, 17 domains, its blocks 17 % of the triangle), these blocks 20-28
+    (min of 2,000; session 22)."""
     for p in range(po.shape[0] - 1):
         a0, a1 = po[p], po[p + 1]
         c0 = perm[a0]                   # a block's columns are one contiguous run of A's

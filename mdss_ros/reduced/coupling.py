@@ -311,8 +311,8 @@ def chunk_products(chunks, elem, w, f_e, K_e, J, pair_entry, pair_slot, nb_ptr, 
     generalised columns of domains k and l; J is zero beyond them); w (n_c,) element
     weights (cubature), f_e (n_c, k, 3), K_e (n_c, 3k, 3k), J (n_I, 3, s_max); pair_slot
     (n_c, k, k) the neighbour slot of each vertex pair (neighbour_slots), max_nb the most
-    neighbours of an entry; P (n_ch, s_max,
-    s_max) and g (n_ch, s_max) are written on [:s_k, :s_l] and [:s_k].
+    neighbours of an entry; P (n_ch, s_max, s_max) and g (n_ch, s_max) are written on
+    [:s_k, :s_l] and [:s_k].
 
     Why the 3 x 3 blocks are summed per neighbour before they meet J: a vertex pair (a, b)
     is shared by several elements (armadillo_class: 31,770 element pairs, 20,432 distinct;
