@@ -9,7 +9,7 @@ the user expects to wait and is never paid again.
 
 It steps three tiny models through the code paths a scene uses: a full-space model, a
 reduced multi-domain model with cubature and a meshless model, each pressed by a sphere
-collider, with the stability guard on. Nothing is cached but the kernels (the precompute cache is off).
+collider, with the stability guard on, then queries a mesh collider's grid. Nothing is cached but the kernels (the precompute cache is off).
 
     python -m mdss_ros.warmup          # prints one line per model and the time taken
 """
@@ -55,6 +55,14 @@ def warm(kinds=("full", "reduced", "meshless"), say=print):
         sim.collider_wrench("ball")
         times[kind] = time.perf_counter() - t0
         say(f"  {kind} model kernels ready ({times[kind]:.1f} s)")
+    # A mesh collider's grid query (contact/mesh_sdf.py), with and without normals: no
+    # scene above has a mesh collider, and the grid needs no file to be queried.
+    import numpy as np
+
+    from .contact.mesh_sdf import MeshSDF
+    grid = MeshSDF(np.zeros((2, 2, 2)), np.zeros(3), 1.0)
+    grid.evaluate(np.zeros((1, 3)))
+    grid.distance(np.zeros((1, 3)))
     return times
 
 

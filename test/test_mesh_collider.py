@@ -209,3 +209,35 @@ def test_bad_mesh_collider_specs_name_the_key_and_the_problem(tmp_path):
     scene.write_text(body + "colliders: {m: {shape: mesh, file: ball.obj, size: 2}}\n")
     with pytest.raises(SceneError, match=r"colliders\.m: unknown key\(s\) \['size'\]"):
         load_scene(str(scene))
+
+
+def test_grid_query_is_exact_for_a_linear_field_and_extends_outside_the_box():
+    """The compiled trilinear query (mesh_sdf._trilinear) against closed forms: trilinear
+    interpolation reproduces a linear field phi = a . x + b exactly, and np.gradient of it
+    is a everywhere, so inside the grid phi is a . p + b and the normal a / |a|; outside it
+    phi is phi(c) + |p - c| for c the closest point of the box, with the normal of that
+    extension's gradient."""
+    from mdss_ros.contact.mesh_sdf import MeshSDF
+    a, b = np.array([0.3, -0.5, 0.8]), -0.02
+    origin, h, counts = np.array([-0.05, -0.04, -0.03]), 0.01, (11, 9, 7)
+    axes = [origin[k] + h * np.arange(counts[k]) for k in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    sdf = MeshSDF(nodes @ a + b, origin, h)
+    rng = np.random.default_rng(3)
+    inside = sdf.origin + (sdf.upper - sdf.origin) * rng.random((500, 3))
+    inside[:3] = [sdf.origin, sdf.upper, sdf.origin + h * np.array([2, 3, 4])]    # corners and a node
+    phi, n = sdf.evaluate(inside)
+    np.testing.assert_allclose(phi, inside @ a + b, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(n, np.broadcast_to(a / np.linalg.norm(a), n.shape), rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(sdf.distance(inside), phi)
+    # Outside: 2 cm beyond the +x face (grad of the extension: +x there, a's other parts kept).
+    p = np.array([[sdf.upper[0] + 0.02, 0.0, 0.0], [sdf.origin[0] - 0.03, sdf.upper[1] + 0.04, 0.01]])
+    c = np.clip(p, sdf.origin, sdf.upper)
+    phi_out, n_out = sdf.evaluate(p)
+    np.testing.assert_allclose(phi_out, c @ a + b + np.linalg.norm(p - c, axis=1), atol=1e-15)
+    d = (p - c) / np.linalg.norm(p - c, axis=1)[:, None]
+    g = np.where(p != c, 0.0, a) + d
+    np.testing.assert_allclose(n_out, g / np.linalg.norm(g, axis=1)[:, None], atol=1e-13)
+    # A flat field has no gradient: the medial fallback normal.
+    flat = MeshSDF(np.zeros(counts), origin, h)
+    np.testing.assert_array_equal(flat.evaluate(inside[:4])[1], np.tile([0.0, 0.0, 1.0], (4, 1)))

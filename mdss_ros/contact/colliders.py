@@ -127,6 +127,8 @@ class Collider:
         if self.shape == "plane":
             # The height above the local z = 0 plane: the local z axis is the rotation's last column.
             return (np.asarray(points, dtype=np.float64) - self.position) @ self.rotation[:, 2]
+        if self.shape == "mesh":
+            return self.sdf.distance((np.asarray(points, dtype=np.float64) - self.position) @ self.rotation)
         return self.signed_distance(points)[0]
 
     def near(self, points, margin):

@@ -30,6 +30,7 @@ import hashlib
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from ..errors import SceneError
 from ..mesh.distance import signed_distance
@@ -138,31 +139,70 @@ class MeshSDF:
 
     def evaluate(self, p):
         """phi (n,) and unit normals (n, 3) at local points p (n, 3)."""
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
-        c = np.clip(p, self.origin, self.upper)
-        u = (c - self.origin) / self.h
-        i = np.minimum(np.floor(u).astype(np.int64), self.counts - 2)
-        t = u - i
-        phi = np.zeros(len(p))
-        g = np.zeros((len(p), 3))
-        for corner in range(8):                      # 8 corners, vectorised over the points
-            o = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-            w = np.prod(np.where(o, t, 1.0 - t), axis=1)
-            idx = (i[:, 0] + o[0], i[:, 1] + o[1], i[:, 2] + o[2])
-            phi += w * self.phi[idx]
-            g += w[:, None] * self.grad[idx]
-        d = p - c
-        out = np.linalg.norm(d, axis=1)
-        far = out > 0
-        if far.any():                                # outside the grid: phi(c) + |p - c|
-            g[far] = np.where(d[far] != 0.0, 0.0, g[far]) + d[far] / out[far, None]
-            phi[far] += out[far]
-        norm = np.linalg.norm(g, axis=1)
-        ok = norm > 1e-12
-        n = np.zeros_like(g)
-        n[ok] = g[ok] / norm[ok, None]
-        n[~ok] = (0.0, 0.0, 1.0)                     # a medial point: any direction is a normal
+        p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+        phi, n = np.empty(len(p)), np.empty((len(p), 3))
+        _trilinear(self.phi, self.grad, self.origin, self.upper, self.h, self.counts, p, phi, n, True)
         return phi, n
+
+    def distance(self, p):
+        """phi (n,) alone at local points p (n, 3): the contact search's pass over every
+        surface vertex, which needs no normals."""
+        p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+        phi = np.empty(len(p))
+        _trilinear(self.phi, self.grad, self.origin, self.upper, self.h, self.counts, p, phi,
+                   np.empty((0, 3)), False)
+        return phi
+
+
+@njit(cache=True)
+def _trilinear(grid, grad, origin, upper, h, counts, p, phi, n, normals):
+    """Trilinear phi (n,) and, where `normals`, unit normals n (n, 3) at local points p (n,
+    3) from the node values grid (nx, ny, nz) and their gradients grad (nx, ny, nz, 3).
+
+    The numpy form it replaced (eight corner passes of fancy indexing, vectorised over the
+    points) took 0.5 ms a query for grasp_lift's two finger pads, 3.4 ms of its 18 ms step
+    (6.7 queries a step; session 23). This makes the same operations in the same order per
+    point: the clip to the grid box, the cell and its fractions, the corners' weights
+    (1 - t or t, multiplied x, y, z) and sums in corner order 0..7, then outside the box
+    phi(c) + |p - c| with the extension's gradient, then the normalised gradient ((0, 0,
+    1) at a medial point)."""
+    for k in range(p.shape[0]):
+        c0 = min(max(p[k, 0], origin[0]), upper[0])
+        c1 = min(max(p[k, 1], origin[1]), upper[1])
+        c2 = min(max(p[k, 2], origin[2]), upper[2])
+        u0, u1, u2 = (c0 - origin[0]) / h, (c1 - origin[1]) / h, (c2 - origin[2]) / h
+        i0 = min(np.int64(np.floor(u0)), counts[0] - 2)
+        i1 = min(np.int64(np.floor(u1)), counts[1] - 2)
+        i2 = min(np.int64(np.floor(u2)), counts[2] - 2)
+        t0, t1, t2 = u0 - i0, u1 - i1, u2 - i2
+        f = 0.0
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        for corner in range(8):
+            o0, o1, o2 = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
+            w = ((t0 if o0 else 1.0 - t0) * (t1 if o1 else 1.0 - t1)) * (t2 if o2 else 1.0 - t2)
+            a, b, c = i0 + o0, i1 + o1, i2 + o2
+            f += w * grid[a, b, c]
+            if normals:
+                g0 += w * grad[a, b, c, 0]
+                g1 += w * grad[a, b, c, 1]
+                g2 += w * grad[a, b, c, 2]
+        d0, d1, d2 = p[k, 0] - c0, p[k, 1] - c1, p[k, 2] - c2
+        out = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if out > 0.0:                                # outside the grid: phi(c) + |p - c|
+            f += out
+            if normals:
+                g0 = (0.0 if d0 != 0.0 else g0) + d0 / out
+                g1 = (0.0 if d1 != 0.0 else g1) + d1 / out
+                g2 = (0.0 if d2 != 0.0 else g2) + d2 / out
+        phi[k] = f
+        if normals:
+            norm = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            if norm > 1e-12:
+                n[k, 0], n[k, 1], n[k, 2] = g0 / norm, g1 / norm, g2 / norm
+            else:                                    # a medial point: any direction is a normal
+                n[k, 0], n[k, 1], n[k, 2] = 0.0, 0.0, 1.0
 
 
 def _code():
