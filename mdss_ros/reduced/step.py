@@ -73,7 +73,9 @@ class Step:
             C, V, W, L = gm
             # Torque of the loads about the mass centre; uniform gravity has none.
             loaded, f_loaded = sparse_loads(f_ext)
-            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0)
+            # Without loads (gravity alone: the incline, a body on a floor) there is no
+            # torque to take, and positions_of's surface pass is skipped.
+            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0) if loaded.size else np.zeros(3)
             gm = (C, V, W, (L + dt * tau) / (1.0 + dt * terms.alpha))
         self._dW = 0.0
         self._indefinite = False
