@@ -104,6 +104,7 @@ class SparseSolver:
         self._solver = None
         self._pattern = None       # PARDISO: (indptr, indices) of the last analysed matrix
         self._triangle = None      # PARDISO: the upper triangle's positions in A (_upper_of)
+        self._upper = None         # PARDISO: the factorised upper triangle, None until one holds
         self.analyses = 0          # PARDISO analyses (phase 11) run
         self.n = 0
 
@@ -144,6 +145,8 @@ class SparseSolver:
                 # solution to the bit and the same peak RSS (session 23). Releasing the
                 # memory here instead (as before) made the retry a full analysis again:
                 # every step of a squeezed body paid two.
+                # No solve of the matrix before: solve() refuses until a factorisation holds.
+                self._upper = None
                 raise NotPositiveDefinite(str(err)) from err
             self._upper = upper
         elif self.backend == "cholmod":
@@ -159,11 +162,13 @@ class SparseSolver:
 
     def _upper_of(self, A):
         """The upper triangle of A (CSR) as PARDISO reads it, the same matrix as sp.triu's
-        (explicit zeros kept, columns sorted), gathered by the positions kept for A's
+        (explicit zeros kept, duplicates summed, columns sorted), gathered by the positions kept for A's
         pattern: a model's step matrix keeps its pattern step after step, and sp.triu's
         COO round trip took 0.7-1.3 ms a call on grasp_lift's 375 DOFs (two calls a step
         where the first factorisation fails), the gather about 10 us (session 23)."""
-        A.sort_indices()
+        if not A.has_canonical_format:        # sorted, no duplicates; the caller's matrix untouched
+            A = A.copy()
+            A.sum_duplicates()
         kept = self._triangle
         if kept is None or not (np.array_equal(kept[0], A.indptr) and np.array_equal(kept[1], A.indices)):
             n = A.shape[0]
@@ -206,6 +211,8 @@ class SparseSolver:
         """Solve A x = b for b (n,) or (n, k)."""
         b = np.ascontiguousarray(b, dtype=np.float64)
         if self.backend == "pardiso":
+            if self._upper is None:
+                raise RuntimeError("SparseSolver.solve: no factorisation is held (the last factor() failed)")
             return self._solver.solve(self._upper, b)
         if self.backend == "cholmod":
             x = np.empty_like(b)

@@ -60,7 +60,7 @@ def warm(kinds=("full", "reduced", "meshless"), say=print):
     import numpy as np
 
     from .contact.mesh_sdf import MeshSDF
-    grid = MeshSDF(np.zeros((2, 2, 2)), np.zeros(3), 1.0)
+    grid = MeshSDF(np.zeros((3, 3, 3)), np.zeros(3), 1.0)      # np.gradient needs 3 nodes an axis
     grid.evaluate(np.zeros((1, 3)))
     grid.distance(np.zeros((1, 3)))
     return times

@@ -121,15 +121,67 @@ def test_pardiso_solves_are_bit_reproducible_whatever_the_thread_count():
 
 def test_the_kept_upper_triangle_is_scipys_triu_with_its_zeros():
     """SparseSolver._upper_of gathers the upper triangle by positions kept for the pattern:
-    the same pattern and values as sp.triu (explicit zeros kept), for a new matrix on the
-    same pattern and after the pattern changes."""
+    the same pattern and values as sp.triu (explicit zeros kept, duplicates summed,
+    columns sorted), for new values on a kept pattern, for another pattern of the same
+    size and nnz, and for unsorted or duplicated input, which it leaves untouched."""
     s = SparseSolver("pardiso")
     rng = np.random.default_rng(4)
-    for size, shift in ((6, 0.1), (6, 0.7), (5, 0.2)):
-        A = _laplacian_3d(size, shift).tocsr()
-        A.data[rng.random(A.nnz) < 0.1] = 0.0                 # explicit zeros stay in the pattern
+
+    def check(A):
+        before = (A.indptr.copy(), A.indices.copy(), A.data.copy())
         mine, ref = s._upper_of(A), sp.triu(A, format="csr")
-        ref.sort_indices()
+        ref.sum_duplicates()
         np.testing.assert_array_equal(mine.indptr, ref.indptr)
         np.testing.assert_array_equal(mine.indices, ref.indices)
         np.testing.assert_array_equal(mine.data, ref.data)
+        for a, b in zip(before, (A.indptr, A.indices, A.data)):
+            np.testing.assert_array_equal(a, b)               # the caller's matrix untouched
+
+    for size, shift in ((6, 0.1), (6, 0.7), (5, 0.2)):
+        A = _laplacian_3d(size, shift).tocsr()
+        A.data[rng.random(A.nnz) < 0.1] = 0.0                 # explicit zeros stay in the pattern
+        check(A)
+    # The same size and nnz, another pattern: a random symmetric matrix, then its entries
+    # moved to other columns.
+    n = 40
+    M = sp.random(n, n, density=0.1, random_state=5)
+    M = (M + M.T + sp.identity(n)).tocsr()
+    check(M)
+    P = sp.csr_matrix(M[rng.permutation(n)][:, rng.permutation(n)])
+    P = (P + P.T).tocsr()
+    check(P)
+    # Unsorted columns within rows, and a duplicated entry.
+    U = M.copy()
+    for r in range(n):
+        a, b = U.indptr[r], U.indptr[r + 1]
+        order = rng.permutation(b - a)
+        U.indices[a:b], U.data[a:b] = U.indices[a:b][order], U.data[a:b][order]
+    U.has_sorted_indices = False
+    check(U)
+    Dup = sp.csr_matrix((np.array([1.0, 2.0, 3.0, 4.0]), np.array([0, 1, 1, 1]), np.array([0, 1, 4])), shape=(2, 2))
+    check(Dup)
+
+
+def test_a_solve_after_a_failed_factorisation_is_refused():
+    s = SparseSolver("pardiso")
+    with pytest.raises(RuntimeError):
+        s.solve(np.ones(7 ** 3))
+    s.factor(_laplacian_3d(7, 0.1))
+    with pytest.raises(NotPositiveDefinite):
+        s.factor(_laplacian_3d(7, -20.0))
+    with pytest.raises(RuntimeError, match="no factorisation"):
+        s.solve(np.ones(7 ** 3))
+
+
+def test_a_first_factorisation_that_fails_keeps_its_analysis_for_the_retry():
+    """The first factorisation of a pattern (analysis and numeric phase together) failing
+    for a zero pivot: the retry on that pattern is numeric only and solves its own matrix."""
+    s = SparseSolver("pardiso")
+    with pytest.raises(NotPositiveDefinite):
+        s.factor(_laplacian_3d(6, -20.0))
+    assert s.analyses == 1
+    A = _laplacian_3d(6, 0.2)
+    s.factor(A)
+    assert s.analyses == 1
+    b = np.random.default_rng(2).standard_normal(6 ** 3)
+    assert np.linalg.norm(A @ s.solve(b) - b) < 1e-12 * np.linalg.norm(b)

@@ -165,8 +165,15 @@ def _trilinear(grid, grad, origin, upper, h, counts, p, phi, n, normals):
     point: the clip to the grid box, the cell and its fractions, the corners' weights
     (1 - t or t, multiplied x, y, z) and sums in corner order 0..7, then outside the box
     phi(c) + |p - c| with the extension's gradient, then the normalised gradient ((0, 0,
-    1) at a medial point)."""
+    1) at a medial point). A point with a coordinate that is not finite (a diverged step)
+    gets phi and a normal of NaN, which the stability guard rejects, and reads no grid node:
+    its cell index would be garbage, and the kernel has no bounds checks."""
     for k in range(p.shape[0]):
+        if not (np.isfinite(p[k, 0]) and np.isfinite(p[k, 1]) and np.isfinite(p[k, 2])):
+            phi[k] = np.nan
+            if normals:
+                n[k, 0], n[k, 1], n[k, 2] = np.nan, np.nan, np.nan
+            continue
         c0 = min(max(p[k, 0], origin[0]), upper[0])
         c1 = min(max(p[k, 1], origin[1]), upper[1])
         c2 = min(max(p[k, 2], origin[2]), upper[2])
