@@ -185,3 +185,22 @@ def test_a_first_factorisation_that_fails_keeps_its_analysis_for_the_retry():
     assert s.analyses == 1
     b = np.random.default_rng(2).standard_normal(6 ** 3)
     assert np.linalg.norm(A @ s.solve(b) - b) < 1e-12 * np.linalg.norm(b)
+
+
+def test_pardiso_half_sweeps_compose_to_the_solve():
+    """SparseSolver.forward / backward (PARDISO's phases 331 and 333): backward(forward(B))
+    is A^-1 B, and forward(B1)^T forward(B2) is B1^T A^-1 B2 (the contact solves' Delassus
+    block from one sweep per row, unilateral.HalfSweepSolves)."""
+    s = SparseSolver("pardiso")
+    A = _beam_stiffness()
+    s.factor(A)
+    rng = np.random.default_rng(6)
+    B1, B2 = rng.standard_normal((A.shape[0], 7)), rng.standard_normal((A.shape[0], 4))
+    Z1, Z2 = s.forward(B1), s.forward(B2)
+    ref = np.linalg.solve(A.toarray(), B2)
+    np.testing.assert_allclose(s.backward(Z2), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    np.testing.assert_allclose(s.backward(Z2[:, 0]), ref[:, 0], rtol=0, atol=1e-10 * np.abs(ref).max())
+    gram = B1.T @ ref
+    np.testing.assert_allclose(Z1.T @ Z2, gram, rtol=0, atol=1e-10 * np.abs(gram).max())
+    assert s.solve(B2[:, 0]).shape == (A.shape[0],)          # the solve phase is restored
+    np.testing.assert_allclose(s.solve(B2), ref, rtol=0, atol=1e-10 * np.abs(ref).max())

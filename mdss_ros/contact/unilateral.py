@@ -152,8 +152,8 @@ class Solves:
     C_b^T of two row sets from their columns, and the velocity correction A^-1 C_r^T lam.
     This one from resolve(B), A X = B for B (n, k): the columns are Y = A^-1 C_r^T.
     keep: answer a right-hand side seen before with the same columns (a solve repeated
-    under another residual compliance, residual_compliance.limit_dent). A reduced body
-    with a Cholesky factor uses half sweeps instead (reduced/contact_rows.CholeskySolves)."""
+    under another residual compliance, residual_compliance.limit_dent). A Cholesky factor
+    that gives its half sweeps is used through HalfSweepSolves instead."""
 
     #: Whether the Delassus blocks are positive semi-definite by their form (Gram matrices).
     definite = False
@@ -181,6 +181,31 @@ class Solves:
     def correction(self, cols, lam):
         """A^-1 C_r^T lam (n,) for lam (k,) on the rows whose columns are cols."""
         return cols @ lam
+
+
+class HalfSweepSolves(Solves):
+    """The contact solves from half sweeps of a Cholesky factorisation A = P^T L L^T P,
+    factor.forward(B) = L^-1 P B and factor.backward(z) = P^T L^-T z: a working set's
+    columns are Z = L^-1 P C_r^T, its Delassus block C_a A^-1 C_b^T = Z_a^T Z_b, and the
+    correction A^-1 C^T lam one backward sweep of Z lam. Y = A^-1 C_r^T took a forward and
+    a backward sweep per row. The block is then symmetric positive semi-definite by its
+    form. A full-space body's PARDISO factorisation (linear_solver.SparseSolver) serves it;
+    a reduced body's block Cholesky does through reduced/contact_rows.CholeskySolves."""
+
+    definite = True
+
+    def __init__(self, factor, keep=False):
+        super().__init__(keep=keep)
+        self.factor = factor
+
+    def _sweep(self, B):
+        return self.factor.forward(B)
+
+    def delassus(self, rows_a, cols_a, rows_b, cols_b):
+        return cols_a.T @ cols_b
+
+    def correction(self, cols, lam):
+        return self.factor.backward(cols @ lam)
 
 
 def contact_correction(resolve, C, g, regularize=0.0, tol=1e-12, max_rounds=50, hint=None, compliance=None):

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..contact.unilateral import find_triangle_contacts
+from ..contact.unilateral import HalfSweepSolves, find_triangle_contacts
 from ..linear_solver import NotPositiveDefinite, SparseSolver
 
 
@@ -209,18 +209,21 @@ class BackwardEuler:
             t1 = time.perf_counter()
             dv = self.solver.solve(-r)
             if rows is not None:
+                # The working set's columns by forward sweeps of PARDISO's factor, the
+                # Delassus block as their Gram matrix (unilateral.HalfSweepSolves): half
+                # the sweeps of a solve per row.
+                solves = HalfSweepSolves(self.solver) if self.solver.backend == "pardiso" else self.solver.solve
                 # Contact: A dv = -r + C^T lam with C (vk + dv) + phi >= 0, lam >= 0.
                 _, C, phi, _, _, friction = rows
                 # Face and vertex rows can be dependent (a face point near a vertex): a
                 # 1e-9 relative diagonal picks the least-norm split (unilateral.py).
                 regularize = 1e-9 if contact.get("triangles") is not None else 0.0
                 if friction is None:
-                    lam, corr, lcp = contact_correction(self.solver.solve, C, C @ (vk + dv) + phi,
-                                                        regularize=regularize)
+                    lam, corr, lcp = contact_correction(solves, C, C @ (vk + dv) + phi, regularize=regularize)
                 else:
                     # The same with Coulomb friction: three rows per contact (friction.py).
                     C3, g3, mu, _, last = friction
-                    lam, corr, lcp = frictional_correction(self.solver.solve, C3, C3 @ (vk + dv) + g3, mu,
+                    lam, corr, lcp = frictional_correction(solves, C3, C3 @ (vk + dv) + g3, mu,
                                                            regularize=regularize, lam_guess=lam if k else last)
                 dv = dv + corr
                 if k == 0:

@@ -16,31 +16,17 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..contact.friction import FrictionRows, rows_of
-from ..contact.unilateral import Solves, member
+from ..contact.unilateral import HalfSweepSolves, Solves, member
 from ..rotations import cross
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
 
 
-class CholeskySolves(Solves):
-    """The contact solves (unilateral.Solves) from half sweeps of the step's block
-    Cholesky factor A = P^T L L^T P (block_cholesky.BlockCholesky): a working set's
-    columns are Z = L^-1 P C_r^T, its Delassus block C_a A^-1 C_b^T = Z_a^T Z_b, and the
-    correction A^-1 C^T lam one backward sweep of Z lam. Y = A^-1 C_r^T took a forward
-    and a backward sweep per row: 105 rows of three per contact at the caterpillar's
-    friction at rest. The block is then symmetric positive semi-definite by its form."""
-
-    definite = True
-
-    def __init__(self, factor, keep=False):
-        super().__init__(keep=keep)
-        self.factor = factor
-
-    def _sweep(self, B):
-        return self.factor.forward(B)
-
-    def delassus(self, rows_a, cols_a, rows_b, cols_b):
-        return cols_a.T @ cols_b
+class CholeskySolves(HalfSweepSolves):
+    """unilateral.HalfSweepSolves on the step's block Cholesky factor A = P^T L L^T P
+    (block_cholesky.BlockCholesky), whose backward sweep takes (S, m) columns. Y = A^-1
+    C_r^T took a forward and a backward sweep per row: 105 rows of three per contact at the
+    caterpillar's friction at rest."""
 
     def correction(self, cols, lam):
         return self.factor.backward((cols @ lam)[:, None], overwrite=True)[:, 0]
