@@ -145,7 +145,8 @@ class SparseSolver:
                 # solution to the bit and the same peak RSS (session 23). Releasing the
                 # memory here instead (as before) made the retry a full analysis again:
                 # every step of a squeezed body paid two.
-                # No solve of the matrix before: solve() refuses until a factorisation holds.
+                # The failed numeric phase overwrote the factor held before: solve() refuses
+                # until a factorisation succeeds.
                 self._upper = None
                 raise NotPositiveDefinite(str(err)) from err
             self._upper = upper
@@ -162,11 +163,11 @@ class SparseSolver:
 
     def _upper_of(self, A):
         """The upper triangle of A (CSR) as PARDISO reads it, the same matrix as sp.triu's
-        (explicit zeros kept, duplicates summed, columns sorted), gathered by the positions kept for A's
-        pattern: a model's step matrix keeps its pattern step after step. On grasp_lift's
-        375-DOF step matrix (two factorisations a step: the first fails) sp.triu's COO round
-        trip took 259 / 371 us, this 112 / 115 us with its pattern check and the CSR it
-        builds (min / median of 500 calls; session 23)."""
+        (explicit zeros kept, duplicates summed, columns sorted), gathered by the positions
+        kept for A's pattern: a model's step matrix keeps its pattern step after step. On
+        grasp_lift's 375-DOF step matrix (two factorisations a step: the first fails)
+        sp.triu's COO round trip took 259 / 371 us, this 112 / 115 us with its pattern check
+        and the CSR it builds (min / median of 500 calls; session 23)."""
         if not A.has_canonical_format:        # sorted, no duplicates; the caller's matrix untouched
             A = A.copy()
             A.sum_duplicates()
