@@ -43,7 +43,7 @@ except ImportError:
 PARDISO_CNR_THREADS = 4
 
 
-def reproducible_pardiso():
+def reproducible_pardiso(refine=True):
     """A pypardiso solver (real symmetric positive definite) whose results are bit for bit
     the same from run to run (issue 17).
 
@@ -59,14 +59,19 @@ def reproducible_pardiso():
     (iparm[1] = 2: the parallel one rules out CNR) and CNR on (iparm[33] > 0). iparm[0] = 1
     tells PARDISO to take iparm as given instead of refilling its defaults.
 
-    iparm[7] = 0: no iterative refinement of a solve unless the factorisation perturbed a
-    pivot (which an SPD factorisation never does; it fails instead). pardisoinit's
-    default made every solve two refinement steps (iparm[6] read 2 after each), each a
-    product with A and another pair of triangular sweeps: 60 right-hand sides on
-    grasp_lift's 375-DOF step matrix took 5.1 ms against 1.4 ms without them, on a 2,187-DOF
-    cube 32.6 against 7.2 ms, for a residual |A x - b| of 1.2e-13 either way at 375 DOFs and
-    3.9e-13 against 1.9e-13 at 2,187 (session 23). A Cholesky solve is backward stable
-    without refinement; refining in the same precision buys no accuracy a step can use."""
+    refine=False sets iparm[7] = 0: no iterative refinement of a solve unless the
+    factorisation perturbed a pivot (which an SPD factorisation never does; it fails
+    instead). pardisoinit's default (refine=True) makes every solve two refinement steps
+    (iparm[6] reads 2 after each), each a product with A and another pair of triangular
+    sweeps: 60 right-hand sides on grasp_lift's 375-DOF step matrix took 5.1 ms against 1.4
+    ms without them, on a 2,187-DOF cube 32.6 against 7.2 ms, for a residual |A x - b| of
+    1.2e-13 either way at 375 DOFs and 3.9e-13 against 1.9e-13 at 2,187 (session 23).
+    A time step's matrix M + dt D + dt^2 K is mass-dominated and well conditioned, so its
+    solves drop the refinement (SparseSolver(refine=False): fem/backward_euler.py and the
+    reduced model's full-space domains). The precompute's solves keep it: they include
+    nearly singular systems (shift-invert bases, a free body's static poses), where it
+    does buy accuracy. Without it, a free block's gravity pose in bend_cuts read a bend of
+    1.7e-6 degrees instead of 0 (test_bend_cuts)."""
     import ctypes
     solver = pypardiso.PyPardisoSolver(mtype=2)
     iparm = np.zeros(64, dtype=np.int32)
@@ -75,7 +80,8 @@ def reproducible_pardiso():
                               iparm.ctypes.data_as(ctypes.c_void_p))
     iparm[0] = 1
     iparm[1] = 2
-    iparm[7] = 0
+    if not refine:
+        iparm[7] = 0
     iparm[33] = PARDISO_CNR_THREADS
     solver.iparm[:] = iparm
     return solver
@@ -88,10 +94,12 @@ class NotPositiveDefinite(ArithmeticError):
 class SparseSolver:
     """Factor once, solve many right-hand sides.
 
-    backend: "pardiso", "cholmod", "splu" or "auto" (see the module docstring).
+    backend: "pardiso", "cholmod", "splu" or "auto" (see the module docstring); refine:
+    PARDISO's iterative refinement of each solve (reproducible_pardiso: off for a time
+    step's well-conditioned matrix).
     """
 
-    def __init__(self, backend="auto"):
+    def __init__(self, backend="auto", refine=True):
         if backend == "auto":
             backend = "pardiso" if pypardiso is not None else "cholmod" if cholespy is not None else "splu"
         if backend not in ("pardiso", "cholmod", "splu"):
@@ -101,6 +109,7 @@ class SparseSolver:
         if backend == "cholmod" and cholespy is None:
             raise ImportError("cholespy is not installed; use backend='splu'")
         self.backend = backend
+        self.refine = bool(refine)
         self._solver = None
         self._pattern = None       # PARDISO: (indptr, indices) of the last analysed matrix
         self._triangle = None      # PARDISO: the upper triangle's positions in A (_upper_of)
@@ -132,7 +141,7 @@ class SparseSolver:
         if self.backend == "pardiso":
             upper = self._upper_of(A)
             if self._solver is None:
-                self._solver = reproducible_pardiso()     # real symmetric positive definite
+                self._solver = reproducible_pardiso(self.refine)     # real symmetric positive definite
             try:
                 self._factor_pardiso(upper)
             except pypardiso.pardiso_wrapper.PyPardisoError as err:

@@ -48,7 +48,8 @@ class BackwardEuler:
         self.model = model
         self.dt = float(dt)
         self.settings = settings or NewtonSettings()
-        self.solver = SparseSolver(solver_backend)
+        # A step's matrix is well conditioned: no iterative refinement of its solves (linear_solver.py).
+        self.solver = SparseSolver(solver_backend, refine=False)
         self.stats = {}
 
     def _potential(self, v, v0, x0, D, f_ext_free, elastic=None):

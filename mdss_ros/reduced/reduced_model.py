@@ -258,7 +258,8 @@ class ReducedModel(Step, GeneralisedForces, UnifiedSystem, ContactRows, Fictitio
         # Solver -------------------------------------------------------------------
         self.order = domain_elimination_order(len(self.subspace), self._subspace_edges())
         self.block_solver = BlockCholesky(sizes, self._subspace_edges(), self.order) if self.F == 0 else None
-        self.sparse_solver = SparseSolver(solver) if self.F > 0 else None
+        # The step's matrix: no iterative refinement of its solves (linear_solver.py).
+        self.sparse_solver = SparseSolver(solver, refine=False) if self.F > 0 else None
         self.compliance = self._build_compliance(contact_vertices, say)
         self.reset()
         self.samples = None             # StackedSamples once cubature exists (_stack_samples)
