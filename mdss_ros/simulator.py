@@ -434,11 +434,15 @@ class Simulator:
         """Reaction (6,) force and torque (about the collider's position) on a collider."""
         if name not in self._collider_names:
             raise KeyError(f"unknown collider {name!r} (scene colliders: {sorted(self._collider_names)})")
+        return self.collider_wrenches()[name]
+
+    def collider_wrenches(self):
+        """{name: (6,)} the reaction wrench of every collider (as collider_wrench), in one pass."""
         from .contact.unilateral import contact_wrenches
         c = self.model.contact
         if not c or len(c["vertices"]) == 0:
-            return np.zeros(6)
-        return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])[name]
+            return {name: np.zeros(6) for name in self.colliders}
+        return contact_wrenches(list(self.colliders.values()), c["points"], c["forces"], c["which"])
 
     def explain(self):
         """What was built for this scene and why (list of str): body, the model's own account

@@ -52,6 +52,38 @@ def test_block_on_floor_reaction_equals_weight_without_penetration():
     assert c.shape[1] == 10 and len(c) > 0 and np.all(c[:, 9] > 0)
 
 
+def test_collider_wrenches_are_the_reaction_sums_and_torques():
+    """contact_wrenches against its definition, collider by collider: minus the sum of the
+    contact forces on the body, torque about the collider's position; a collider without
+    contacts reads zero; Simulator.collider_wrenches() is collider_wrench of each."""
+    from types import SimpleNamespace
+    from mdss_ros.contact.unilateral import contact_wrenches
+    rng = np.random.default_rng(4)
+    cols = [SimpleNamespace(name=n, position=rng.normal(size=3)) for n in ("a", "b", "c")]
+    points, forces = rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    which = rng.choice([0, 2], size=30)                    # "b" touches nothing
+    got = contact_wrenches(cols, points, forces, which)
+    for i, col in enumerate(cols):
+        sel = which == i
+        f = -forces[sel]
+        expected = np.concatenate([f.sum(0), sum((np.cross(p - col.position, fi) for p, fi in zip(points[sel], f)),
+                                                 np.zeros(3))])
+        np.testing.assert_allclose(got[col.name], expected, rtol=1e-13, atol=1e-13)
+    assert not got["b"].any()
+    assert set(contact_wrenches(cols, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, int))) == {"a", "b", "c"}
+    sim = Simulator(_block_scene({"floor": {"shape": "plane"},
+                                  "ball": {"shape": "sphere", "radius": 0.04, "position": [0.0, 0.0, 0.145]}}))
+    for z in np.linspace(0.143, 0.137, 4):             # press 3 mm into the top
+        sim.set_collider_pose("ball", (0.0, 0.0, z))
+        sim.step()
+    all_of = sim.collider_wrenches()
+    assert list(all_of) == ["floor", "ball"] and all_of["ball"][2] > 0 and all_of["floor"][2] < 0
+    for name, w in all_of.items():
+        np.testing.assert_array_equal(sim.collider_wrench(name), w)
+    with pytest.raises(KeyError, match="unknown collider"):
+        sim.collider_wrench("nope")
+
+
 def test_sphere_pressed_then_withdrawn_releases_cleanly():
     sim = Simulator(_block_scene({"floor": {"shape": "plane"},
                                   "ball": {"shape": "sphere", "radius": 0.04, "position": [0, 0, 0.2]}}))

@@ -81,6 +81,30 @@ def test_surface_points_cloud_layout(surface):
     assert _rosbags(msg) == before                                    # ...the message kept its copy
 
 
+def test_cloud_encoder_bytes_are_rosbags_bytes():
+    """Contacts and surface points through CloudEncoder: the bytes of cloud() serialised by
+    rosbags, for frame ids of every length mod 4 (the fields' alignment follows it), empty
+    clouds, several stamps, and a template reused across frame ids and sizes."""
+    rng = np.random.default_rng(11)
+    contacts = convert.CloudEncoder(convert.CONTACT_DTYPE)
+    for frame in ("world", "", "a", "ab", "abc", "odom_frame_x"):
+        for k in (0, 1, 7, 25):
+            c, t = rng.normal(size=(k, 10)), float(rng.uniform(0.0, 1e5))
+            data = contacts.encode(t, frame, convert.contact_records(c))
+            assert data == _rosbags(convert.contacts_cloud(t, frame, c)), (frame, k)
+    msg = convert.decode(data, "sensor_msgs/msg/PointCloud2")
+    np.testing.assert_array_equal(np.frombuffer(msg.data, dtype=convert.CONTACT_DTYPE)["fz"],
+                                  c[:, 9].astype(np.float32))
+    domain = rng.integers(0, 6, size=40)
+    points, reference = convert.CloudEncoder(convert.SURFACE_POINT_DTYPE), convert.SurfacePoints(domain)
+    fill = convert.SurfacePoints(domain)
+    for t in (0.0, 1.25, 3600.5):
+        x = rng.normal(size=(40, 3))
+        assert points.encode(t, "world", fill.fill(x)) == _rosbags(reference.message(t, "world", x))
+    with pytest.raises(TypeError, match="dtype"):
+        points.encode(0.0, "world", convert.contact_records(np.zeros((1, 10))))
+
+
 def test_stamps_recover_the_step_index():
     dt = 1.0 / 90.0
     for k in (0, 1, 9, 12345, 10**7):

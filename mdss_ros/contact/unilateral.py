@@ -311,14 +311,21 @@ def find_contacts(colliders, x, x_pred, margin):
 
 def contact_wrenches(colliders, points, forces, which):
     """Reaction wrench (6,) on each collider: minus the sum of the contact forces on the
-    body, torque about the collider's position. Returns {name: (6,)}."""
-    out = {}
-    for c_idx, col in enumerate(colliders):
-        sel = which == c_idx
-        f = -forces[sel]
-        tau = np.cross(points[sel] - col.position, f).sum(0) if sel.any() else np.zeros(3)
-        out[col.name] = np.concatenate([f.sum(0), tau])
-    return out
+    body, torque about the collider's position. Returns {name: (6,)}.
+
+    points, forces (k, 3), which (k,) collider index of each contact. One pass for all
+    colliders (bincount per component): the node reads every collider's wrench each step,
+    and a numpy pass per collider took 104 us a collider on grasp_lift's 25 contacts."""
+    n = len(colliders)
+    which = np.asarray(which, dtype=np.int64)
+    origin = np.array([col.position for col in colliders]).reshape(n, 3)
+    f = -np.asarray(forces, dtype=np.float64).reshape(-1, 3)
+    lever = np.asarray(points, dtype=np.float64).reshape(-1, 3) - origin[which]
+    per_contact = np.hstack([f, np.cross(lever, f)]) if len(f) else np.zeros((0, 6))
+    w = np.zeros((n, 6))
+    for j in range(6):                    # six bincounts: columns, not contacts or colliders
+        w[:, j] = np.bincount(which, weights=per_contact[:, j], minlength=n)
+    return {col.name: w[i] for i, col in enumerate(colliders)}
 
 
 def _axis(col):

@@ -123,6 +123,7 @@ class Topics:
         self.diagnostics = "/diagnostics"
         self.tf = "/tf"
         self.tf_prefix = f"{self.node_name}/"             # /tf child frames: <node name>/<domain name>
+        self._kinds = {}                                  # topic -> kind, filled by kind()
 
     def collider_pose(self, name):
         return f"{self.namespace}/colliders/{name}/pose"
@@ -134,7 +135,15 @@ class Topics:
         return f"{self.namespace}/colliders/{name}/contacts"
 
     def kind(self, topic):
-        """The kind of a topic name (a key of TYPES), or None for a topic not of this node."""
+        """The kind of a topic name (a key of TYPES), or None for a topic not of this node.
+        Remembered per topic: a step's outputs ask it about 24 times (type and QoS)."""
+        try:
+            return self._kinds[topic]
+        except KeyError:
+            k = self._kinds[topic] = self._find_kind(topic)
+            return k
+
+    def _find_kind(self, topic):
         for k in ("wrench", "point_forces", "clear_forces", "reset", "parameters", "topology", "points", "mesh", "marker",
                   "domain_poses", "domain_transforms", "contacts", "clock", "diagnostics", "tf"):
             if getattr(self, k) == topic:
@@ -237,6 +246,8 @@ class SimOutputs:
         self.surface_domain = surface_domain(sim)
         self.colliders = list(sim.scene["colliders"])
         self._points = convert.SurfacePoints(self.surface_domain)
+        self._points_bytes = convert.CloudEncoder(convert.SURFACE_POINT_DTYPE)
+        self._contacts_bytes = convert.CloudEncoder(convert.CONTACT_DTYPE)
         self._mesh = convert.MeshEncoder(self.triangles)
         self._marker = convert.MarkerEncoder(self.triangles, self.surface_domain)
 
@@ -259,7 +270,7 @@ class SimOutputs:
             x = sim.surface_positions()
             _finite("surface positions", x, t)
             if "points" in surface:
-                out.append(self._out(tp.points, self._points.message(t, self.frame, x), t))
+                out.append(self._out(tp.points, self._points_bytes.encode(t, self.frame, self._points.fill(x)), t))
             if "mesh" in surface:
                 out.append(self._out(tp.mesh, self._mesh.encode(x), t))
             if "marker" in surface:
@@ -274,22 +285,24 @@ class SimOutputs:
             out.append(self._out(tp.tf, convert.tf_message(tf), t))
             # Touch per collider (a tactile sensor's reading): its net wrench, and its own
             # contacts as a cloud in ~/contacts' layout, empty when it touches nothing.
-            touch = sim.contacts(split=True) if self.colliders else None
+            if self.colliders:
+                wrenches = sim.collider_wrenches()
+                names = sim.contacts(split=True)["collider"]
+                contacts = np.asarray(sim.contacts(), dtype=np.float64)
+                _finite("contacts", contacts, t)
             for c in self.colliders:
-                w = sim.collider_wrench(c)
+                w = wrenches[c]
                 _finite(f"wrench on collider {c!r}", w, t)
                 out.append(self._out(tp.collider_wrench(c), convert.wrench_stamped(t, self.frame, w), t))
-                mine = touch["collider"] == c
-                rows = np.hstack([touch["points"][mine], touch["normals"][mine], touch["depth"][mine, None],
-                                  touch["force"][mine]])
-                _finite(f"contacts of collider {c!r}", rows, t)
-                out.append(self._out(tp.collider_contacts(c), convert.contacts_cloud(t, self.frame, rows), t))
+                out.append(self._out(tp.collider_contacts(c), self._contacts_bytes.encode(
+                    t, self.frame, convert.contact_records(contacts[names == c])), t))
         contacts_of = getattr(sim, "contacts", None)
         if callable(contacts_of):
             contacts = np.asarray(contacts_of(), dtype=np.float64)
             if len(contacts):
                 _finite("contacts", contacts, t)
-                out.append(self._out(tp.contacts, convert.contacts_cloud(t, self.frame, contacts), t))
+                out.append(self._out(tp.contacts, self._contacts_bytes.encode(
+                    t, self.frame, convert.contact_records(contacts)), t))
         return out
 
     def diagnostics_due(self, previous_step):

@@ -22,8 +22,10 @@ triangles (triangles and colours built once): a Mesh 140 ms through rosbags agai
 0.09 ms here, the Marker (300K corners) 670 ms against 2.3 ms. So `MeshEncoder` and
 `MarkerEncoder` write those CDR bytes themselves: the fixed parts (triangles, colours)
 once, the vertex block per frame with numpy; tests (test_ros_convert) check their
-bytes equal `TYPESTORE.serialize_cdr` of the same message exactly. A PointCloud2 needs
-no such path: its data is one uint8 array (50K points: 1.0 ms built and serialised).
+bytes equal `TYPESTORE.serialize_cdr` of the same message exactly. A PointCloud2's data
+is one uint8 array (50K points: 1.0 ms built and serialised through rosbags), but the
+small clouds a step publishes (~/contacts, one per collider) paid rosbags' fixed cost,
+about 50-74 us each; `CloudEncoder` writes their header and fields once, the same way.
 """
 import struct
 
@@ -132,23 +134,84 @@ class SurfacePoints:
         self.records["domain"] = np.asarray(domain, dtype=np.uint8)
 
     def message(self, t, frame_id, positions):
+        return cloud(t, frame_id, self.fill(positions))
+
+    def fill(self, positions):
+        """The records (S,) of positions (S, 3), written into the reused buffer."""
         self.records["x"] = positions[:, 0]
         self.records["y"] = positions[:, 1]
         self.records["z"] = positions[:, 2]
-        return cloud(t, frame_id, self.records)
+        return self.records
+
+
+def contact_records(contacts):
+    """CONTACT_DTYPE records (k,) of contacts (k, 10): x y z nx ny nz depth fx fy fz."""
+    return np.ascontiguousarray(np.asarray(contacts, dtype=np.float64).reshape(-1, len(CONTACT_FIELDS)),
+                                dtype="<f4").view(CONTACT_DTYPE).reshape(-1)
 
 
 def contacts_cloud(t, frame_id, contacts):
     """~/contacts of contacts (k, 10): x y z nx ny nz depth fx fy fz."""
-    rec = np.ascontiguousarray(np.asarray(contacts, dtype=np.float64).reshape(-1, len(CONTACT_FIELDS)),
-                               dtype="<f4").view(CONTACT_DTYPE).reshape(-1)
-    return cloud(t, frame_id, rec)
+    return cloud(t, frame_id, contact_records(contacts))
+
+
+class CloudEncoder:
+    """PointCloud2 CDR bytes (height 1, little-endian, dense) of records of one dtype:
+    the bytes `cloud` + TYPESTORE.serialize_cdr give, written without rosbags.
+
+    A node step publishes a cloud per collider (~/colliders/<name>/contacts), ~/contacts
+    and, at the points rate, ~/surface/points. Through rosbags a 25-contact cloud took
+    74 us built and serialised (grasp_lift, median of 300), most of it the ten PointField
+    objects and the generic serialiser; here the header and fields are written once per
+    frame_id and a message is its stamp, width, row_step and data written into that
+    template. tests/test_ros_convert checks the bytes equal rosbags' exactly."""
+
+    def __init__(self, dtype):
+        self.dtype = np.dtype(dtype)
+        fields = cloud(0.0, "", np.zeros(0, self.dtype)).fields      # validates the dtype
+        self._fields = fields
+        self._tpl, self._frame = None, None
+
+    def _template(self, frame_id):
+        c = _Cdr()
+        c.time(0.0)
+        c.string(frame_id)
+        c.pack("I", 1)                            # height
+        at_width = c.pos
+        c.pack("I", 0)                            # width
+        c.pack("I", len(self._fields))
+        for f in self._fields:
+            c.string(f.name)
+            c.pack("I", f.offset)
+            c.pack("B", f.datatype)
+            c.pack("I", f.count)
+        c.pack("?", False)                        # is_bigendian
+        c.pack("I", self.dtype.itemsize)          # point_step
+        at_row = c.pos
+        c.pack("I", 0)                            # row_step
+        c.pack("I", 0)                            # data: its length, then its bytes
+        return bytearray(c.bytes()), 4 + at_width, 4 + at_row
+
+    def encode(self, t, frame_id, records):
+        """CDR bytes of the cloud of records (k,) of self.dtype, stamped t in frame_id."""
+        if records.dtype != self.dtype:
+            raise TypeError(f"records of dtype {records.dtype}, the encoder's is {self.dtype}")
+        if self._tpl is None or frame_id != self._frame:
+            self._tpl, self._frame = self._template(frame_id), frame_id
+        buf, at_width, at_row = self._tpl
+        st = stamp(t)
+        n = len(records)
+        size = n * self.dtype.itemsize
+        struct.pack_into("<iI", buf, 4, st.sec, st.nanosec)
+        struct.pack_into("<I", buf, at_width, n)
+        struct.pack_into("<II", buf, at_row, size, size)
+        return b"".join((buf, np.ascontiguousarray(records).tobytes(), b"\x01"))   # is_dense
 
 
 # --------------------------------------------------------------------- CDR
 class _Cdr:
     """Little-endian CDR (XCDR1, the layout TYPESTORE.serialize_cdr writes) into chunks,
-    for the two encoders below only (the module doc says why they exist).
+    for the encoders of this module only (the module doc says why they exist).
 
     Alignment is relative to the start of the payload, after the 4-byte encapsulation;
     padding is zeros, as rosbags writes it.
