@@ -105,6 +105,26 @@ def test_cloud_encoder_bytes_are_rosbags_bytes():
         points.encode(0.0, "world", convert.contact_records(np.zeros((1, 10))))
 
 
+def test_poses_encoder_bytes_are_rosbags_bytes():
+    """~/domain_poses, ~/domain_transforms and /tf through PosesEncoder: rosbags' bytes of
+    pose_array, domain_transforms and tf_message, for one and for eleven domains, names and
+    frame ids of every length mod 4 (the strings shift the alignment of the doubles)."""
+    rng = np.random.default_rng(12)
+    for names in (["body"], ["a", "bb", "ccc", "dddd", "e"], [f"domain_{i}" for i in range(11)]):
+        enc = convert.PosesEncoder(names, "mdss/")
+        for frame in ("world", "", "ab", "abc", "a", "world"):     # one encoder, the frame changing
+            for t in (0.0, 1.23456789, 7777.5):
+                poses = rng.normal(size=(len(names), 7))
+                assert enc.pose_array(t, frame, poses) == _rosbags(convert.pose_array(t, frame, poses))
+                assert enc.transforms(t, frame, poses) == [_rosbags(m) for m in
+                                                           convert.domain_transforms(t, frame, names, poses)]
+                assert enc.tf(t, frame, poses) == _rosbags(convert.tf_message(
+                    convert.domain_transforms(t, frame, names, poses, prefix="mdss/")))
+    tf = convert.decode(enc.tf(2.5, "world", poses), "tf2_msgs/msg/TFMessage")
+    assert [m.child_frame_id for m in tf.transforms] == [f"mdss/domain_{i}" for i in range(11)]
+    assert tf.transforms[3].transform.rotation.w == poses[3, 6] and tf.transforms[0].header.stamp.sec == 2
+
+
 def test_stamps_recover_the_step_index():
     dt = 1.0 / 90.0
     for k in (0, 1, 9, 12345, 10**7):

@@ -250,6 +250,7 @@ class SimOutputs:
         self._contacts_bytes = convert.CloudEncoder(convert.CONTACT_DTYPE)
         self._mesh = convert.MeshEncoder(self.triangles)
         self._marker = convert.MarkerEncoder(self.triangles, self.surface_domain)
+        self._poses = convert.PosesEncoder(self.domain_names, self.topics.tf_prefix)
 
     def _out(self, topic, data, t):
         return Out(topic, self.topics.type_of(topic), cdr_bytes(data), t)
@@ -278,11 +279,9 @@ class SimOutputs:
         if due(r.pose, dt, k, previous_step):
             poses = np.asarray(sim.domain_poses())
             _finite("domain poses", poses, t)
-            out.append(self._out(tp.domain_poses, convert.pose_array(t, self.frame, poses), t))
-            transforms = convert.domain_transforms(t, self.frame, self.domain_names, poses)
-            out.extend(self._out(tp.domain_transforms, msg, t) for msg in transforms)
-            tf = convert.domain_transforms(t, self.frame, self.domain_names, poses, prefix=tp.tf_prefix)
-            out.append(self._out(tp.tf, convert.tf_message(tf), t))
+            out.append(self._out(tp.domain_poses, self._poses.pose_array(t, self.frame, poses), t))
+            out.extend(self._out(tp.domain_transforms, msg, t) for msg in self._poses.transforms(t, self.frame, poses))
+            out.append(self._out(tp.tf, self._poses.tf(t, self.frame, poses), t))
             # Touch per collider (a tactile sensor's reading): its net wrench, and its own
             # contacts as a cloud in ~/contacts' layout, empty when it touches nothing.
             if self.colliders:
