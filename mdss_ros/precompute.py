@@ -66,12 +66,27 @@ def code_hash(stage="bases"):
         if not p.exists():
             raise RuntimeError(f"precompute.STAGE_CODE[{stage!r}] names {rel}, which does not exist: "
                                f"update STAGE_CODE to the module that now holds that code")
-        fingerprint = code_fingerprint(p.read_text(), name or None)
+        fingerprint = _file_fingerprint(p, name or None)
         if fingerprint == b"missing":
             raise RuntimeError(f"precompute.STAGE_CODE[{stage!r}] names {item}, which {rel} no longer "
                                f"defines: update STAGE_CODE to where that code moved")
         h.update(fingerprint)
     return h.hexdigest()[:16]
+
+
+_FINGERPRINTS = {}
+
+
+def _file_fingerprint(path, name):
+    """code_fingerprint of a file's source, remembered per process for the file's current
+    (mtime, size): parsing and dumping the syntax trees of a build's 26 stage sources took
+    1.1 s of a small model's 2.2 s build (cantilever at cell 0.05, 2 domains), on every
+    build of a process (a test session, a study, a node that rebuilds)."""
+    st = path.stat()
+    key = (str(path), st.st_mtime_ns, st.st_size, name)
+    if key not in _FINGERPRINTS:
+        _FINGERPRINTS[key] = code_fingerprint(path.read_text(), name)
+    return _FINGERPRINTS[key]
 
 
 def code_fingerprint(source, name=None):

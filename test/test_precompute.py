@@ -121,6 +121,26 @@ def test_code_fingerprint_of_one_method():
     assert code_hash("bases") != code_hash("cubature")
 
 
+def test_file_fingerprints_are_remembered_until_the_file_changes(tmp_path, monkeypatch):
+    """The per-process memo of code fingerprints: a second read of an unchanged file parses
+    nothing, and an edit (a new mtime or size) is fingerprinted again."""
+    import os
+    import mdss_ros.precompute as precompute
+    parses = []
+    real = precompute.code_fingerprint
+    monkeypatch.setattr(precompute, "code_fingerprint", lambda src, name=None: parses.append(name) or real(src, name))
+    f = tmp_path / "m.py"
+    f.write_text("def f():\n    return 1\n")
+    first = precompute._file_fingerprint(f, None)
+    assert precompute._file_fingerprint(f, None) == first and len(parses) == 1
+    assert precompute._file_fingerprint(f, "f") != first and len(parses) == 2      # a definition: its own entry
+    st = f.stat()
+    f.write_text("def f():\n    return 2\n")                                    # same size: the mtime tells
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    changed = precompute._file_fingerprint(f, None)
+    assert changed != first and len(parses) == 3
+
+
 def test_two_writers_of_one_entry_both_finish(tmp_path, monkeypatch):
     """Two runs that build the same precompute at once (two nodes started on one scene, a
     cold shared cache) both save it. They wrote it through the same temporary name
