@@ -26,6 +26,30 @@ try:
     import cholespy
 except ImportError:  # the fallbacks keep the product working; the speed is reported in stats
     cholespy = None
+
+
+def _point_pypardiso_at_mkl_rt():
+    """Tell pypardiso where MKL's runtime is (PYPARDISO_MKL_RT): the venv's pinned
+    libmkl_rt, when it is there and the user set no path of their own.
+
+    Without it pypardiso looks for libmkl_rt on every PyPardisoSolver() (one is made when
+    pypardiso is imported): ctypes' find_library, and when that fails (MKL from a pip wheel
+    lives in the venv's lib, which the loader does not search) a recursive glob of
+    sys.prefix. In this repository's venv that glob walks about 11K folders: 0.6-0.7 s
+    for every solver made. A node's first step made one (grasp_lift's first step: 625 ms
+    against 8 ms for the next), a small model's build made four (cantilever at cell 0.05,
+    2 domains: 2.8 s of its 4.3 s), and the import another. Where the venv has no
+    libmkl_rt, pypardiso's own search runs as before."""
+    if os.environ.get("PYPARDISO_MKL_RT"):
+        return
+    import glob
+    import sys
+    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
+    if found:
+        os.environ["PYPARDISO_MKL_RT"] = found[0]
+
+
+_point_pypardiso_at_mkl_rt()
 try:
     import pypardiso
 except ImportError:
@@ -41,35 +65,6 @@ except ImportError:
 #: 260/378 ms against 230/362 ms with the defaults (+4-13 %), hammock's (29K) 156 against
 #: 149 ms; analysis and solves about the same.
 PARDISO_CNR_THREADS = 4
-
-
-_MKL_RT_FOUND = False
-
-
-def _point_pypardiso_at_mkl_rt():
-    """Tell pypardiso where MKL's runtime is (PYPARDISO_MKL_RT), once per process.
-
-    pypardiso looks for libmkl_rt on every PyPardisoSolver(): ctypes' find_library, and when
-    that fails (MKL from a pip wheel lives in the venv's lib, which the loader does not
-    search) a recursive glob of sys.prefix. In this repository's venv that glob walks about
-    11K folders: 0.6-0.7 s for every solver made. A node's first step made one (grasp_lift's
-    first step: 625 ms against 8 ms for the next), and a small model's build made four
-    (cantilever at cell 0.05, 2 domains: 2.8 s of its 4.3 s). The venv's lib folder is where
-    the MKL wheel puts it; if it is not there, pypardiso's own search runs as before. A path
-    the user set is kept."""
-    global _MKL_RT_FOUND
-    if _MKL_RT_FOUND:
-        return
-    _MKL_RT_FOUND = True
-    if os.environ.get("PYPARDISO_MKL_RT"):
-        return
-    import glob
-    import sys
-    from ctypes.util import find_library
-    if find_library("mkl_rt") is None:
-        found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
-        if found:
-            os.environ["PYPARDISO_MKL_RT"] = found[0]
 
 
 def reproducible_pardiso(refine=True):
@@ -102,7 +97,6 @@ def reproducible_pardiso(refine=True):
     does buy accuracy. Without it, a free block's gravity pose in bend_cuts read a bend of
     1.7e-6 degrees instead of 0 (test_bend_cuts)."""
     import ctypes
-    _point_pypardiso_at_mkl_rt()
     solver = pypardiso.PyPardisoSolver(mtype=2)
     iparm = np.zeros(64, dtype=np.int32)
     pt = np.zeros(64, dtype=np.int64)

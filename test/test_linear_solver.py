@@ -206,27 +206,26 @@ def test_pardiso_half_sweeps_compose_to_the_solve():
     np.testing.assert_allclose(s.solve(B2), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
 
 
-def test_pypardiso_is_pointed_at_mkl_rt_once_without_its_directory_walk(monkeypatch):
+def test_pypardiso_is_pointed_at_the_venvs_mkl_rt_without_its_directory_walk(monkeypatch):
     """Every PyPardisoSolver() used to walk sys.prefix for libmkl_rt (0.6-0.7 s here):
-    linear_solver sets PYPARDISO_MKL_RT to the venv's library once, and solvers made after
-    that load it without a glob; a path the user set is kept."""
+    linear_solver sets PYPARDISO_MKL_RT to the venv's library before pypardiso is
+    imported, and solvers load it without a glob; a path the user set is kept."""
     import glob
     import os
+    import sys
     from mdss_ros import linear_solver
+    venv_rt = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
     monkeypatch.delenv("PYPARDISO_MKL_RT", raising=False)
-    monkeypatch.setattr(linear_solver, "_MKL_RT_FOUND", False)
     linear_solver._point_pypardiso_at_mkl_rt()
-    path = os.environ.get("PYPARDISO_MKL_RT")
-    if path is None:                       # MKL found by the loader: pypardiso needs no hint
-        from ctypes.util import find_library
-        assert find_library("mkl_rt") is not None
-    else:
-        assert os.path.isfile(path) and "mkl_rt" in os.path.basename(path)
-        walks = []
-        monkeypatch.setattr(glob, "glob", lambda *a, **k: walks.append(a) or [])
-        solver = linear_solver.reproducible_pardiso()
-        assert walks == [] and solver.libmkl._name == path
+    if not venv_rt:
+        assert "PYPARDISO_MKL_RT" not in os.environ     # pypardiso's own search, as before
+        return
+    path = os.environ["PYPARDISO_MKL_RT"]
+    assert path == venv_rt[0] and os.path.isfile(path)
+    walks = []
+    monkeypatch.setattr(glob, "glob", lambda *a, **k: walks.append(a) or [])
+    solver = linear_solver.reproducible_pardiso()
+    assert walks == [] and solver.libmkl._name == path
     monkeypatch.setenv("PYPARDISO_MKL_RT", "/a/custom/libmkl_rt.so")
-    monkeypatch.setattr(linear_solver, "_MKL_RT_FOUND", False)
     linear_solver._point_pypardiso_at_mkl_rt()
     assert os.environ["PYPARDISO_MKL_RT"] == "/a/custom/libmkl_rt.so"

@@ -8,6 +8,7 @@ plus the mass matrix on the same sparsity pattern. Pinned vertices are removed f
 the unknowns by the pattern (their rows and columns never enter K or M).
 """
 import time
+from functools import cached_property
 
 import numpy as np
 
@@ -50,20 +51,33 @@ class FEMForceModel(FreeDofs):
         self.material = material
         self.pinned = np.unique(np.asarray(pinned, dtype=np.int64))
         self.geom = tet_geometry(self.X, self.tets)
-        self.pattern = stiffness_pattern(self.tets, self.n_verts, self.pinned)
         self.vertex_mass = lumped_mass(self.tets, self.geom.volume, material.density, self.n_verts)
-        if mass == "lumped":
-            self.M_data = np.zeros(self.pattern.nnz)
-            free = self.pattern.free_dof >= 0
-            self.M_data[self.pattern.diagonal] = np.repeat(self.vertex_mass, 3)[free]
-        elif mass == "consistent":
-            self.M_data = assemble_matrix(self.pattern, consistent_mass_elements(self.geom.volume, material.density))
-        else:
+        if mass not in ("lumped", "consistent"):
             raise ValueError(f"mass must be 'lumped' or 'consistent', got {mass!r}")
         self.mass_kind = mass
-        self.M = self.pattern.matrix(self.M_data)
         self.timings = {}
         self._buffers = None
+
+    # The pattern and the mass matrix on it are made on first use. A reduced model's
+    # subspace domain has a force model of its own, which needs the pattern only for the
+    # exact tangent (training, or a domain without cubature samples): on a cached build of
+    # armadillo_class the eleven patterns were 8-19 s of the start (np.union1d over every
+    # element's 144 entries), for nothing the step reads.
+    @cached_property
+    def pattern(self):
+        return stiffness_pattern(self.tets, self.n_verts, self.pinned)
+
+    @cached_property
+    def M_data(self):
+        if self.mass_kind == "consistent":
+            return assemble_matrix(self.pattern, consistent_mass_elements(self.geom.volume, self.material.density))
+        M_data = np.zeros(self.pattern.nnz)
+        M_data[self.pattern.diagonal] = np.repeat(self.vertex_mass, 3)[self.pattern.free_dof >= 0]
+        return M_data
+
+    @cached_property
+    def M(self):
+        return self.pattern.matrix(self.M_data)
 
     def _buf(self):
         # Results are consumed (assembled or summed) before the next evaluation, so one
