@@ -42,17 +42,25 @@ def _point_pypardiso_at_mkl_rt():
     libmkl_rt, pypardiso's own search runs as before."""
     if os.environ.get("PYPARDISO_MKL_RT"):
         return
+    import ctypes
     import glob
     import sys
-    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
-    if found:
-        os.environ["PYPARDISO_MKL_RT"] = found[0]
+    # pypardiso's order (the shortest name first), then the highest version of equal length
+    found = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")),
+                   key=lambda p: (len(p), [-ord(ch) for ch in p]))
+    for path in found:
+        try:
+            ctypes.CDLL(path)            # pypardiso would CDLL it unguarded: only a library that loads
+        except OSError:
+            continue
+        os.environ["PYPARDISO_MKL_RT"] = path
+        return
 
 
 _point_pypardiso_at_mkl_rt()
 try:
     import pypardiso
-except ImportError:
+except (ImportError, OSError):           # OSError: a PYPARDISO_MKL_RT the user set that does not load
     pypardiso = None
 
 

@@ -79,11 +79,12 @@ _FINGERPRINTS = {}
 
 def _file_fingerprint(path, name):
     """code_fingerprint of a file's source, remembered per process for the file's current
-    (mtime, size): parsing and dumping the syntax trees of a build's 26 stage sources took
+    (mtime, ctime, inode, size): parsing and dumping the syntax trees of a build's 26 stage sources took
     1.1 s of a small model's 2.2 s build (cantilever at cell 0.05, 2 domains), on every
     build of a process (a test session, a study, a node that rebuilds)."""
     st = path.stat()
-    key = (str(path), st.st_mtime_ns, st.st_size, name)
+    # ctime and inode too: a copy that keeps the mtime (cp -p, rsync -t) changes them
+    key = (str(path), st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_size, name)
     if key not in _FINGERPRINTS:
         _FINGERPRINTS[key] = code_fingerprint(path.read_text(), name)
     return _FINGERPRINTS[key]

@@ -110,7 +110,7 @@ def test_poses_encoder_bytes_are_rosbags_bytes():
     pose_array, domain_transforms and tf_message, for one and for eleven domains, names and
     frame ids of every length mod 4 (the strings shift the alignment of the doubles)."""
     rng = np.random.default_rng(12)
-    for names in (["body"], ["a", "bb", "ccc", "dddd", "e"], [f"domain_{i}" for i in range(11)]):
+    for names in ([], ["body"], ["a", "bb", "ccc", "dddd", "e"], ["wörld_ä", "世界"], [f"domain_{i}" for i in range(11)]):
         enc = convert.PosesEncoder(names, "mdss/")
         for frame in ("world", "", "ab", "abc", "a", "world"):     # one encoder, the frame changing
             for t in (0.0, 1.23456789, 7777.5):
@@ -120,6 +120,9 @@ def test_poses_encoder_bytes_are_rosbags_bytes():
                                                            convert.domain_transforms(t, frame, names, poses)]
                 assert enc.tf(t, frame, poses) == _rosbags(convert.tf_message(
                     convert.domain_transforms(t, frame, names, poses, prefix="mdss/")))
+    with pytest.raises(ValueError, match="domains"):
+        enc.pose_array(0.0, "world", np.zeros((3, 7)))          # a pose count the names do not have
+    assert enc.pose_array(1.0, "world", poses) == _rosbags(convert.pose_array(1.0, "world", poses))
     tf = convert.decode(enc.tf(2.5, "world", poses), "tf2_msgs/msg/TFMessage")
     assert [m.child_frame_id for m in tf.transforms] == [f"mdss/domain_{i}" for i in range(11)]
     assert tf.transforms[3].transform.rotation.w == poses[3, 6] and tf.transforms[0].header.stamp.sec == 2

@@ -424,7 +424,8 @@ class PosesEncoder:
         c.time(0.0)
         c.string(frame_id)
         c.pack("I", len(self.names))
-        c.align(8)
+        if self.names:
+            c.align(8)                            # rosbags pads an empty sequence not at all
         at = 4 + c.pos                            # the poses: one block of d x 7 doubles
         c.raw(bytes(56 * len(self.names)))
         self._array = (bytearray(c.bytes()), at)
@@ -451,22 +452,30 @@ class PosesEncoder:
             c.raw(bytes(56))                      # translation (3 doubles), rotation (4)
         return bytearray(c.bytes()), stamps, poses
 
+    def _poses(self, poses):
+        p = np.ascontiguousarray(poses, dtype="<f8")
+        if p.shape != (len(self.names), 7):
+            raise ValueError(f"poses of shape {p.shape} for {len(self.names)} domains: expected "
+                             f"({len(self.names)}, 7)")
+        return p
+
     def pose_array(self, t, frame_id, poses):
         """geometry_msgs/PoseArray of poses (d, 7), as pose_array(t, frame_id, poses)."""
+        p = self._poses(poses).tobytes()
         self._templates(frame_id)
         buf, at = self._array
         st = stamp(t)
         struct.pack_into("<iI", buf, 4, st.sec, st.nanosec)
-        p = np.ascontiguousarray(poses, dtype="<f8").tobytes()
         buf[at:at + len(p)] = p
         return bytes(buf)
 
     def transforms(self, t, frame_id, poses):
         """[TransformStamped bytes] per domain, as domain_transforms(t, frame_id, names, poses)."""
+        p = self._poses(poses)
         self._templates(frame_id)
         st = stamp(t)
         out = []
-        for (buf, (at_stamp,), (at,)), row in zip(self._single, np.ascontiguousarray(poses, dtype="<f8")):
+        for (buf, (at_stamp,), (at,)), row in zip(self._single, p):
             struct.pack_into("<iI", buf, at_stamp, st.sec, st.nanosec)
             buf[at:at + 56] = row.tobytes()
             out.append(bytes(buf))
@@ -474,10 +483,11 @@ class PosesEncoder:
 
     def tf(self, t, frame_id, poses):
         """tf2_msgs/TFMessage, as tf_message(domain_transforms(..., prefix=tf_prefix))."""
+        p = self._poses(poses)
         self._templates(frame_id)
         buf, stamps, at = self._tf
         st = stamp(t)
-        for offset, row in zip(at, np.ascontiguousarray(poses, dtype="<f8")):
+        for offset, row in zip(at, p):
             buf[offset:offset + 56] = row.tobytes()
         for offset in stamps:
             struct.pack_into("<iI", buf, offset, st.sec, st.nanosec)
