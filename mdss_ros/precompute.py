@@ -79,9 +79,9 @@ _FINGERPRINTS = {}
 
 def _file_fingerprint(path, name):
     """code_fingerprint of a file's source, remembered per process for the file's current
-    (mtime, ctime, inode, size): parsing and dumping the syntax trees of a build's 26 stage sources took
-    1.1 s of a small model's 2.2 s build (cantilever at cell 0.05, 2 domains), on every
-    build of a process (a test session, a study, a node that rebuilds)."""
+    (mtime, ctime, inode, size): parsing and dumping the syntax trees of a build's 26 stage
+    sources took 1.1 s of a small model's 2.2 s build (cantilever at cell 0.05, 2 domains),
+    on every build of a process (a test session, a study, a node that rebuilds)."""
     st = path.stat()
     # ctime and inode too: a copy that keeps the mtime (cp -p, rsync -t) changes them
     key = (str(path), st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_size, name)
