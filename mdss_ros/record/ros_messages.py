@@ -276,6 +276,7 @@ class SimOutputs:
                 out.append(self._out(tp.mesh, self._mesh.encode(x), t))
             if "marker" in surface:
                 out.append(self._out(tp.marker, self._marker.encode(t, self.frame, x), t))
+        contacts = None                  # (k, 10), read once a step for every cloud that needs it
         if due(r.pose, dt, k, previous_step):
             poses = np.asarray(sim.domain_poses())
             _finite("domain poses", poses, t)
@@ -296,12 +297,12 @@ class SimOutputs:
                 out.append(self._out(tp.collider_contacts(c), self._contacts_bytes.encode(
                     t, self.frame, convert.contact_records(contacts[names == c])), t))
         contacts_of = getattr(sim, "contacts", None)
-        if callable(contacts_of):
+        if contacts is None and callable(contacts_of):
             contacts = np.asarray(contacts_of(), dtype=np.float64)
-            if len(contacts):
-                _finite("contacts", contacts, t)
-                out.append(self._out(tp.contacts, self._contacts_bytes.encode(
-                    t, self.frame, convert.contact_records(contacts)), t))
+            _finite("contacts", contacts, t)
+        if contacts is not None and len(contacts):
+            out.append(self._out(tp.contacts, self._contacts_bytes.encode(
+                t, self.frame, convert.contact_records(contacts)), t))
         return out
 
     def diagnostics_due(self, previous_step):
