@@ -255,7 +255,12 @@ def test_follow_tracks_a_50hz_master_within_one_dt_and_never_ahead(tmp_path, ros
     assert lags.min() >= -CLOCK_EPS_S
     assert np.median(lags) < DT and np.mean(lags < DT) >= 0.8, lags       # timing: a loaded machine may lag
     assert final["steps"] == "180" and float(final["sim_time"]) == pytest.approx(2.0, abs=1e-9)
-    assert -CLOCK_EPS_S <= float(final["clock_lag"]) < DT and final["clock_ticks"] == "100"
+    assert -CLOCK_EPS_S <= float(final["clock_lag"]) < DT
+    # follow subscribes BEST_EFFORT (node.py: a lost tick costs nothing, the next carries the
+    # time), so DDS may drop a tick on a loaded machine (CI once counted 99 of 100 with every
+    # step taken): the node must count no more ticks than were sent, and the last one.
+    assert 1 <= int(final["clock_ticks"]) <= len(times)
+    assert float(final["clock_master_time"]) == pytest.approx(times[-1], abs=1e-9)
     assert final["clock_jumps_back"] == "0" and final["stability"] == "ok"
 
 
