@@ -124,6 +124,40 @@ def test_proximal_solve_meets_the_law_where_rows_are_dependent():
     assert worst_fixed > 1e-8                            # the shift's own error, for contrast
 
 
+def test_compiled_proximal_rounds_match_the_python_rounds_bit_for_bit():
+    """solve_proximal's compiled rounds (a warm start: the last step's forces) give the
+    Python rounds' answer and report exactly, on singular problems from first guesses near
+    and far from the answer; where a round is unconverged the compiled call declines
+    (None) and the Python rounds run."""
+    from mdss_ros.contact import friction as fr
+    rng = np.random.default_rng(11)
+    compiled = declined = 0
+    for trial in range(120):
+        m = int(rng.integers(1, 9))
+        W, g, mu = _singular_problem(rng, m)
+        exact, _ = fr.solve_proximal(W, g, mu)
+        lam0 = exact * (1.0 + rng.normal(scale=[1e-6, 1e-2, 1.0][trial % 3], size=exact.shape))
+        eps = fr.PROXIMAL_SHIFT * float(W.diagonal().mean())
+        Ws = W.copy()
+        Ws.flat[::len(W) + 1] += eps
+        scale = max(float(np.abs(g).max()), 1e-300)
+        for rounds in (1, fr.PROXIMAL_ROUNDS):
+            got = fr._proximal_compiled(W, g, mu, lam0, eps, 1e-12, rounds)
+            ref, ref_info = fr._proximal_rounds(Ws, g, mu, eps, lam0, lam0, 1e-12, scale, rounds)
+            if got is None:                             # a round needed solve_coulomb's fallbacks
+                declined += 1
+                continue
+            compiled += 1
+            lam, info = got
+            assert np.array_equal(lam, ref), (trial, rounds)
+            assert set(info) == set(ref_info)
+            for key in info:
+                assert np.array_equal(info[key], ref_info[key]), (trial, rounds, key)
+        public, _ = fr.solve_proximal(W, g, mu, lam0=lam0, definite=True)
+        assert np.array_equal(public, ref)
+    assert compiled > 150 and compiled + declined == 240   # most warm starts converge compiled
+
+
 def test_compiled_newton_matches_the_numpy_reference():
     """friction._newton (the compiled loop) against _newton_numpy, the same steps to round-off, on
     random problems from random first guesses, and its Jacobian kernel against the numpy
@@ -192,6 +226,30 @@ def test_a_contact_that_slid_feels_the_kinetic_coefficient():
     # vertex 4 on collider 0 and 7 on 1 slid; 9 crept below the stiction speed; 4 on 1 is new.
     np.testing.assert_array_equal(effective_mu(mu_s, mu_k, keys, previous, 2), [0.5, 0.5, 0.9, 0.9])
     np.testing.assert_array_equal(effective_mu(mu_s, mu_k, keys, None, 2), mu_s)
+
+
+def test_previous_match_finds_each_contact_in_the_last_record():
+    """previous_match against a dictionary of the last record's keys (a repeated key maps
+    to its last place), with new contacts, keys beyond every previous one, and none found."""
+    from mdss_ros.contact.friction import previous_match
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        n_col = int(rng.integers(1, 4))
+        k_prev = int(rng.integers(1, 30))
+        previous = {"vertices": rng.integers(0, 40, k_prev), "which": rng.integers(0, n_col, k_prev),
+                    "slip_speed": np.zeros(k_prev)}
+        keys = rng.permutation(60 * n_col)[:int(rng.integers(0, 40))]
+        place = {int(v) * n_col + int(c): i for i, (v, c) in enumerate(zip(previous["vertices"], previous["which"]))}
+        expect = [place.get(int(key), -1) for key in keys]
+        got = previous_match(previous, keys, n_col)
+        if not any(e >= 0 for e in expect):
+            assert got is None
+            continue
+        found, src = got
+        np.testing.assert_array_equal(found, [e >= 0 for e in expect])
+        np.testing.assert_array_equal(src, [e for e in expect if e >= 0])
+    assert previous_match({"vertices": np.zeros(0, int), "which": np.zeros(0, int), "slip_speed": np.zeros(0)},
+                          np.arange(3), 1) is None
 
 
 def test_tangent_basis_is_orthonormal_and_right_handed():

@@ -587,6 +587,12 @@ def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_R
     m = len(g) // 3
     diag = max(float(W.diagonal().mean()), 1e-300)
     eps = (PROXIMAL_SHIFT if shift is None else shift) * diag
+    if definite and lam0 is not None and m:
+        # A warm start on a known Gram matrix: the rounds in one compiled call (the shifted
+        # W formed there), unless a round needs solve_coulomb's fallbacks.
+        done = _proximal_compiled(W, g, mu, lam0, eps, tol, rounds)
+        if done is not None:
+            return done
     if definite:
         Ws, lifted = W.copy(), False
         Ws.flat[::len(W) + 1] += eps           # W + eps I without an identity
@@ -597,6 +603,94 @@ def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_R
         return lam, dict(info, proximal_rounds=1)
     centre = np.zeros((m, 3)) if lam0 is None else np.asarray(lam0, dtype=np.float64).reshape(m, 3)
     scale = max(float(np.abs(g).max(initial=0.0)), 1e-300)
+    return _proximal_rounds(Ws, g, mu, eps, centre, lam0, tol, scale, rounds)
+
+
+def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
+    """solve_proximal's rounds on W + eps I (W a Gram matrix, lam0 (m, 3) the first
+    centre) in one compiled call (_proximal_kernel), when every round's Newton ends
+    converged, which a warm-started step's does unless its contact set changes; None
+    otherwise (a singular Newton system or an unconverged round: the caller then runs
+    the rounds in Python from the start, with solve_coulomb's Gauss-Seidel and
+    least-squares fallbacks). The same operations as _proximal_rounds, bit for bit
+    (test_friction.py). Why compiled: the rounds' numpy around the Newton kernel took
+    most of solve_proximal's time on the reduced incline (docs/performance.md, Session 25)."""
+    m = len(g) // 3
+    f64 = np.float64
+    mu = mu if (isinstance(mu, np.ndarray) and mu.shape == (m,) and mu.dtype == f64 and mu.flags.c_contiguous) \
+        else np.ascontiguousarray(np.broadcast_to(np.asarray(mu, dtype=f64), (m,)))
+    stick = np.empty(m, dtype=np.bool_)
+    lam, k, it, cuts, merit, f_scale, ok = _proximal_kernel(
+        np.ascontiguousarray(W, dtype=f64), np.ascontiguousarray(g, dtype=f64), mu,
+        np.ascontiguousarray(np.asarray(lam0, dtype=f64).reshape(m, 3)), eps, tol, rounds,
+        NEWTON_FIRST, UNCONVERGED, stick)
+    if not ok:
+        return None
+    in_contact = lam[:, 0] > 0.0
+    return lam, {"iterations": it, "line_search_cuts": cuts, "residual": float(np.sqrt(merit)) / f_scale,
+                 "stick": in_contact & stick, "slip": in_contact & ~stick, "unconverged": False,
+                 "violation": 0.0, "proximal_rounds": k}
+
+
+@njit(cache=True)
+def _proximal_kernel(W, g, mu, lam0, eps, tol, rounds, max_iterations, unconverged, stick):
+    """_proximal_rounds compiled from a warm start lam0 (m, 3): Ws = W + eps I, rho =
+    _rho(Ws), and round k runs _newton_kernel on Ws and g - eps centre from the centre,
+    which the round's answer replaces. Returns (lam (m, 3), rounds, the last round's
+    iterations, cuts, |F|^2 and force scale, ok) and fills stick (m,) at the answer; ok
+    is False where a round's Newton system was singular or its answer unconverged."""
+    m = mu.shape[0]
+    n = 3 * m
+    Ws = W.copy()
+    for i in range(n):
+        Ws[i, i] += eps
+    top = Ws[0, 0]                                  # _rho
+    for i in range(1, m):
+        top = max(top, Ws[3 * i, 3 * i])
+    floor = 1e-300 + 1e-12 * max(top, 0.0)
+    rho = np.empty(m)
+    for i in range(m):
+        rho[i] = 1.0 / max(Ws[3 * i, 3 * i], floor)
+    scale = 0.0                                     # max |g|, the rows' scale
+    for i in range(n):
+        scale = max(scale, abs(g[i]))
+    scale = max(scale, 1e-300)
+    centre = lam0
+    last_move = np.inf
+    lam = centre.copy()
+    it, cuts, merit, f_scale = 0, 0, 0.0, 1e-300
+    gk = g.copy()
+    k = 0
+    for k in range(1, rounds + 1):
+        c = centre.ravel()
+        for i in range(n):
+            gk[i] = g[i] - eps * c[i]
+        f_scale = 0.0                               # _force_scale(gk, rho, centre)
+        for i in range(m):
+            for j in range(3):
+                f_scale = max(f_scale, abs(centre[i, j]))
+        top = -gk[0] * rho[0]
+        for i in range(1, m):
+            top = max(top, -gk[3 * i] * rho[i])
+        f_scale = max(max(f_scale, top), 0.0, 1e-300)
+        lam, it, cuts, merit, ok = _newton_kernel(Ws, gk, mu, rho, centre, tol * f_scale, max_iterations)
+        if not ok or np.sqrt(merit) > unconverged * f_scale:
+            return lam, k, it, cuts, merit, f_scale, False
+        move = 0.0
+        for i in range(m):
+            for j in range(3):
+                move = max(move, abs(lam[i, j] - centre[i, j]))
+        move = eps * move
+        centre = lam
+        if move <= tol * scale or move > 0.5 * last_move:
+            break
+        last_move = move
+    _residual_kernel(Ws, gk, mu, rho, lam, np.empty((m, 3)), stick)
+    return lam, k, it, cuts, merit, f_scale, True
+
+
+def _proximal_rounds(Ws, g, mu, eps, centre, lam0, tol, scale, rounds):
+    """solve_proximal's rounds (see there) in Python, with solve_coulomb's fallbacks."""
     last_move = np.inf
     for k in range(1, rounds + 1):
         lam, info = solve_coulomb(Ws, g - eps * centre.ravel(), mu, lam0=lam0 if k == 1 else centre, tol=tol)
@@ -765,15 +859,36 @@ def previous_match(previous, keys, n_colliders):
     the previous step's record holds, and their index in it; None when it holds none."""
     if previous is None or "slip_speed" not in previous or len(previous["vertices"]) == 0:
         return None
-    prev_keys = np.asarray(previous["vertices"]) * n_colliders + np.asarray(previous["which"])
-    # A key table (as unilateral.member): keys span about the mesh's vertices x colliders.
-    table = np.full(int(max(prev_keys.max(), keys.max(initial=0))) + 1, -1, dtype=np.int64)
-    table[prev_keys] = np.arange(len(prev_keys))
-    src = table[keys]
-    found = src >= 0
-    if not found.any():
-        return None
-    return found, src[found]
+    found = np.empty(len(keys), dtype=np.bool_)
+    src = np.empty(len(keys), dtype=np.int64)
+    n = _match_kernel(np.ascontiguousarray(previous["vertices"], dtype=np.int64),
+                      np.ascontiguousarray(previous["which"], dtype=np.int64), int(n_colliders),
+                      np.ascontiguousarray(keys, dtype=np.int64), found, src)
+    return None if n == 0 else (found, src[:n])
+
+
+@njit(cache=True)
+def _match_kernel(vertices, which, n_colliders, keys, found, src):
+    """previous_match's lookup through a key table (as unilateral.member; keys span about
+    the mesh's vertices x colliders; a repeated previous key maps to its last place):
+    fills found (k,) and src[:n] in key order, returns n. Compiled: its numpy form (a
+    table, four gathers and a mask) was 8 calls a step around nothing."""
+    top = 0
+    for i in range(keys.shape[0]):
+        top = max(top, keys[i])
+    for i in range(vertices.shape[0]):
+        top = max(top, vertices[i] * n_colliders + which[i])
+    table = np.full(top + 1, -1, dtype=np.int64)
+    for i in range(vertices.shape[0]):
+        table[vertices[i] * n_colliders + which[i]] = i
+    n = 0
+    for i in range(keys.shape[0]):
+        j = table[keys[i]]
+        found[i] = j >= 0
+        if j >= 0:
+            src[n] = j
+            n += 1
+    return n
 
 
 def warm_start(previous, keys, tangents, n_colliders, match=None):
@@ -805,16 +920,25 @@ def coefficients(contact, which):
     return table[which, 0], table[which, 1]
 
 
-def collider_slip(contact, which, points, tangents):
+def moving_colliders(contact):
+    """Indices of the spec's colliders that moved over the step (their "starts" pose, one
+    or None per collider, differs from the current one): the only ones that drag."""
+    starts = contact.get("starts") or [None] * len(contact["colliders"])
+    return [c_idx for c_idx, (col, start) in enumerate(zip(contact["colliders"], starts))
+            if start is not None and not (np.array_equal(start[0], col.position)
+                                          and np.array_equal(start[1], col.orientation))]
+
+
+def collider_slip(contact, which, points, tangents, moving=None):
     """The rows' share of the colliders' own motion: minus the tangential displacement
     (k, 2) over the step of the collider surface at the contact points (k, 3) (tangents
     (k, 2, 3)), from the spec's "starts" (one start pose or None per collider). A fixed
-    collider gives zeros. One vectorised pass per collider."""
+    collider gives zeros. One vectorised pass per moving collider (moving: their indices,
+    moving_colliders' answer when already had)."""
     out = np.zeros((len(which), 2))
     starts = contact.get("starts") or [None] * len(contact["colliders"])
-    for c_idx, (col, start) in enumerate(zip(contact["colliders"], starts)):
-        if start is None or (np.array_equal(start[0], col.position) and np.array_equal(start[1], col.orientation)):
-            continue                     # a collider that did not move drags nothing
+    for c_idx in (moving_colliders(contact) if moving is None else moving):
+        col, start = contact["colliders"][c_idx], starts[c_idx]
         sel = np.flatnonzero(which == c_idx)
         if sel.size:
             d = collider_displacement(col, start, points[sel])
