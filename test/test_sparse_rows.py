@@ -100,6 +100,10 @@ def test_entries_give_the_dense_rows_and_their_products():
         assert np.allclose(C.norms(), np.linalg.norm(dense, axis=1), rtol=1e-14, atol=1e-300)
         X = rng.normal(size=(n, 4))
         assert np.allclose(C @ X, dense @ X, rtol=0, atol=1e-14 * scale * np.abs(X).sum())
+        # Products of some rows in place: take()'s products exactly (the same sums in order).
+        assert np.array_equal(C.matvec_rows(idx, x), sub @ x)
+        assert np.array_equal(C.rmatvec_rows(idx, lam[:len(idx)]), sub.rmatvec(lam[:len(idx)]))
+        assert np.array_equal(C.matvec_rows(idx[:0], x), np.zeros(0))
 
 
 def test_a_vertex_per_contact():

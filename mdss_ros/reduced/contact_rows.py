@@ -15,8 +15,12 @@ domains make n_gen large.
 import numpy as np
 import scipy.sparse as sp
 
-from ..contact.friction import FrictionRows, rows_of
-from ..contact.unilateral import HalfSweepSolves, Solves, member
+# Imported at module level: contact_rows already imports these modules, and a function's
+# import statement costs microseconds a call on a step of a few hundred.
+from ..contact.friction import (FrictionRows, coefficients, collider_slip, effective_mu, frictional_correction,
+                                moving_colliders, previous_match, rows_of, tangent_basis, warm_start)
+from ..contact.unilateral import (HalfSweepSolves, Solves, contact_correction, find_contacts,
+                                  find_triangle_contacts, member)
 from ..rotations import cross
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
@@ -58,7 +62,11 @@ class FrictionalRows:
         m = len(g_n)
         self.g_n = g_n
         self.slot = np.full(m, -1, dtype=np.int64)      # a contact's place in the built rows
+        self.n_built = 0
         self.rows3 = None                               # the built contacts' rows, 3 per contact
+        # Colliders whose own motion over the step drags a contact (collider_slip): none on
+        # a fixed floor, whose contacts then skip that pass.
+        self.moving = moving_colliders(slip_at[0])
         self.tangents = np.zeros((m, 2, 3))
         self.g3 = np.zeros((m, 3))
         self.g3[:, 0] = g_n
@@ -70,20 +78,21 @@ class FrictionalRows:
         """Build the rows of those of contacts (k,) (distinct indices) not yet built;
         tangents (m, 2, 3): every contact's, when already had (else friction.tangent_basis
         of their normals)."""
-        from ..contact.friction import collider_slip, tangent_basis
         new = contacts[self.slot[contacts] < 0]
         if new.size == 0:
             return
         verts, xv, normals, weights, first, end = self.corners
         t = tangent_basis(normals[first[new]]) if tangents is None else tangents[new]
         if len(verts) == len(self.g_n):            # one corner row per contact (no face contacts)
-            corner, starts, t_corner = first[new], np.arange(new.size), t
+            corner, starts = first[new], np.arange(new.size)
+            # Every weight is 1 here (a face would add corner rows), so none is multiplied.
+            dirs = np.concatenate([normals[corner][:, None, :], t], axis=1)
         else:
             counts = end[new] - first[new]
             starts = np.cumsum(counts) - counts
             corner = np.repeat(first[new] - starts, counts) + np.arange(int(counts.sum()))
             t_corner = np.repeat(t, counts, axis=0)
-        dirs = np.concatenate([normals[corner][:, None, :], t_corner], axis=1) * weights[corner][:, None, None]
+            dirs = np.concatenate([normals[corner][:, None, :], t_corner], axis=1) * weights[corner][:, None, None]
         built = self.model._rows_along(dirs, verts[corner], xv[corner], starts, self.dt)
         if self.rows3 is None:
             self.rows3 = built
@@ -91,11 +100,11 @@ class FrictionalRows:
             self.rows3 = self.rows3.stacked(built)
         else:
             self.rows3 = sp.vstack([self.rows3, built]).tocsr()
-        n_built = int((self.slot >= 0).sum())
-        self.slot[new] = np.arange(n_built, n_built + new.size)
+        self.slot[new] = np.arange(self.n_built, self.n_built + new.size)
+        self.n_built += new.size
         self.tangents[new] = t
         spec, which, points = self.slip_at
-        g_t = collider_slip(spec, which[new], points[new], t)
+        g_t = collider_slip(spec, which[new], points[new], t, self.moving) if self.moving else np.zeros((new.size, 2))
         if self.rigid_v is not None:
             self.rigid3[new, 1:] = self.dt * np.einsum("lij,lj->li", t, self.rigid_v[new])
             g_t += self.rigid3[new, 1:]
@@ -103,41 +112,38 @@ class FrictionalRows:
             g_t -= self.dent_shift[new, 1:]
         self.g3[new, 1:] = g_t
 
-    def _rows(self, contacts):
-        """The rows n, t1, t2 of built contacts (k,) twice: for the solves (dense (3k, n_gen),
-        or CSR beside full-space domains) and for products (ContactRowEntries, or the same
-        CSR)."""
+    def _rows(self, contacts, v):
+        """The rows n, t1, t2 of built contacts (k,) for the solves (dense (3k, n_gen), or CSR
+        beside full-space domains) and their products with v (n_gen,) (3k,)."""
         r = rows_of(self.slot[contacts])
         if isinstance(self.rows3, ContactRowEntries):
-            return self.rows3[r], self.rows3.take(r)
+            return self.rows3[r], self.rows3.matvec_rows(r, v)
         rows = self.rows3[r]
-        return rows, rows
+        return rows, rows @ v
 
     def at(self, v):
         """The rows with their values at generalised velocities v (n_gen,), for
         friction.frictional_correction."""
         return _FrictionalRowsAt(self, v)
 
-    def _product_rows(self, contacts):
-        """The rows n, t1, t2 of built contacts (k,) for products only (_rows' second)."""
-        r = rows_of(self.slot[contacts])
-        return self.rows3.take(r) if isinstance(self.rows3, ContactRowEntries) else self.rows3[r]
-
     def force(self, lam):
         """C3^T lam (n_gen,) for forces lam (m, 3), nonzero on built contacts only."""
         on = np.flatnonzero(lam.any(axis=1))
         if on.size == 0:
             return np.zeros(self.C.shape[1])
-        rows = self._product_rows(on)
-        f = lam[on].ravel()
-        return rows.rmatvec(f) if isinstance(rows, ContactRowEntries) else rows.T @ f
+        r, f = rows_of(self.slot[on]), lam[on].ravel()
+        if isinstance(self.rows3, ContactRowEntries):
+            return self.rows3.rmatvec_rows(r, f)
+        return self.rows3[r].T @ f
 
     def work(self, lam, Q):
         """lam . (C3 Q + rigid3): the work of the forces lam (m, 3) over the step's Q."""
         on = np.flatnonzero(lam.any(axis=1))
         if on.size == 0:
             return 0.0
-        return float(lam[on].ravel() @ (self._product_rows(on) @ Q + self.rigid3[on].ravel()))
+        r = rows_of(self.slot[on])
+        CQ = self.rows3.matvec_rows(r, Q) if isinstance(self.rows3, ContactRowEntries) else self.rows3[r] @ Q
+        return float(lam[on].ravel() @ (CQ + self.rigid3[on].ravel()))
 
 
 class _FrictionalRowsAt(FrictionRows):
@@ -152,8 +158,8 @@ class _FrictionalRowsAt(FrictionRows):
 
     def block(self, contacts):
         self.rows.ensure(contacts)
-        dense, rows = self.rows._rows(contacts)
-        return dense, rows @ self.v + self.rows.g3[contacts].ravel()
+        dense, product = self.rows._rows(contacts, self.v)
+        return dense, product + self.rows.g3[contacts].ravel()
 
 
 class ContactRows:
@@ -167,8 +173,6 @@ class ContactRows:
         None (every collider frictionless) or the contacts' FrictionalRows (rows n, t1, t2
         per contact, mu static or kinetic by the last step's slip, the last step's forces as
         a first guess)."""
-        from ..contact.friction import coefficients, effective_mu, previous_match, tangent_basis, warm_start
-        from ..contact.unilateral import find_contacts, find_triangle_contacts
         ids = contact["vertices"]
         x = self.positions_of(ids)                  # with the last step's dent (residual compliance)
         rows, which, phi, normals = find_contacts(contact["colliders"], x, x, contact["margin"])
@@ -340,8 +344,6 @@ class ContactRows:
         """Correct a Newton step for contact: C (Q + dQ') + phi >= 0 via the LCP (unilateral.py),
         or with friction the Coulomb problem on three rows per contact (friction.py).
         Returns (dQ + correction, lam (m,) or (m, 3))."""
-        from ..contact.friction import frictional_correction
-        from ..contact.unilateral import contact_correction
         verts, C, phi, _, which, friction = rows
         # The LCP's first guess: the rows active in the last Newton iteration, or in the last
         # two steps (a resting or pressed body keeps most of its contacts, and a coarse patch

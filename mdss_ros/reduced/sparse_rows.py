@@ -8,7 +8,8 @@ filled, normed and multiplied by the step whole. ContactRowEntries keeps each ro
 entries in corner order, (cols, vals) (m, w) and count (m,), and gives what the contact
 solve reads:
 
-- C @ x (m,) and C^T lam (n,), in compiled passes over the entries;
+- C @ x (m,) and C^T lam (n,), in compiled passes over the entries, of all rows or of
+  some (matvec_rows, rmatvec_rows);
 - C[idx] (len(idx), n): dense rows, for the solves of the working set's rows. They are
   the same numbers, bit for bit, as the dense kernel they replaced (kept as the reference in
   test/test_sparse_rows.py): the same values added in the same order into zeros;
@@ -85,6 +86,29 @@ def _rmatvec(cols, vals, count, lam, out):
 
 
 @njit(cache=True)
+def _matvec_rows(cols, vals, count, idx, x, out):
+    """out[a] = row idx[a] . x: _matvec on the rows idx, in the same order."""
+    for a in range(idx.shape[0]):
+        o = idx[a]
+        acc = 0.0
+        for t in range(count[o]):
+            acc += vals[o, t] * x[cols[o, t]]
+        out[a] = acc
+
+
+@njit(cache=True)
+def _rmatvec_rows(cols, vals, count, idx, lam, out):
+    """out += sum_a lam[a] row idx[a]: _rmatvec on the rows idx, in the same order."""
+    for a in range(idx.shape[0]):
+        lo = lam[a]
+        if lo == 0.0:
+            continue
+        o = idx[a]
+        for t in range(count[o]):
+            out[cols[o, t]] += vals[o, t] * lo
+
+
+@njit(cache=True)
 def _dense(cols, vals, count, idx, out):
     """out[a] += row idx[a]'s entries, in their order (out zeroed): the dense rows."""
     for a in range(idx.shape[0]):
@@ -152,6 +176,22 @@ class ContactRowEntries:
         """C^T lam (n,) for lam (m,)."""
         out = np.zeros(self.n)
         _rmatvec(self.cols, self.vals, self.count, np.ascontiguousarray(lam, dtype=np.float64), out)
+        return out
+
+    def matvec_rows(self, idx, x):
+        """C[idx] @ x (len(idx),) for integer indices idx, without take()'s copies: the
+        same sums as take(idx) @ x."""
+        out = np.empty(len(idx))
+        _matvec_rows(self.cols, self.vals, self.count, np.ascontiguousarray(idx, dtype=np.int64),
+                     np.ascontiguousarray(x, dtype=np.float64), out)
+        return out
+
+    def rmatvec_rows(self, idx, lam):
+        """C[idx]^T lam (n,) for integer indices idx and lam (len(idx),): the same sums as
+        take(idx).rmatvec(lam)."""
+        out = np.zeros(self.n)
+        _rmatvec_rows(self.cols, self.vals, self.count, np.ascontiguousarray(idx, dtype=np.int64),
+                      np.ascontiguousarray(lam, dtype=np.float64), out)
         return out
 
     def __getitem__(self, idx):
