@@ -10,6 +10,7 @@ from types import MappingProxyType
 import numpy as np
 
 from .body import build_body
+from .contact.colliders import inside_body
 from .errors import SceneError
 from .guard import GuardSettings, StabilityGuard
 from .loads import VertexLoads, closest_surface_point, wrench_to_vertex_forces
@@ -194,17 +195,27 @@ class Simulator:
     def inside_depth(self):
         """Depth (m) beyond which a collider counts as posed inside the body at a pose update
         or a step's start: the sweep's largest travel per sub-step (half a mean surface edge)."""
-        return self.MAX_COLLIDER_TRAVEL * self._contact_spec()["margin"]
+        return self.MAX_COLLIDER_TRAVEL * self._margin()
+
+    def _margin(self):
+        """The contact search's margin (m): a mean surface edge, computed once."""
+        if self._contact_margin is None:
+            tri = self.body.surface.triangles
+            pos = self.rest_positions()[self.body.surface.vertex_ids]
+            edges = np.linalg.norm(pos[tri[:, [1, 2, 0]]] - pos[tri], axis=2)
+            # Vertices within a surface edge of a collider (predicted) become candidates.
+            self._contact_margin = float(edges.mean())
+        return self._contact_margin
 
     def _embedded_colliders(self):
         """Colliders about to be swept this step (moved more than inside_depth since their last
         step) whose start pose is inside the body: a surface vertex deeper than inside_depth
         in it, or its centre inside the surface. They are not swept (docs/method.md §14)."""
-        from .contact.colliders import inside_body
         out, surface, box = [], None, None
+        depth = self.inside_depth       # once: every step runs this, colliders moved or not
         for name, c in self.colliders.items():
             p0, q0 = self._collider_start.get(name, (c.position, c.orientation))
-            if float(np.linalg.norm(c.position - p0)) <= self.inside_depth:
+            if float(np.linalg.norm(c.position - p0)) <= depth:
                 continue
             surface = self.surface_positions() if surface is None else surface
             if c.shape == "sphere":
@@ -217,7 +228,7 @@ class Simulator:
                 if np.any(p + c.radius < box[0]) or np.any(p - c.radius > box[1]):
                     continue
             start = c.at(p0, q0)
-            if start.penetration(surface, self.inside_depth)[1] or \
+            if start.penetration(surface, depth)[1] or \
                     inside_body(start, surface, self.body.surface.triangles):
                 out.append(name)
         return out
@@ -390,12 +401,7 @@ class Simulator:
         return stats
 
     def _contact_spec(self):
-        if self._contact_margin is None:
-            tri = self.body.surface.triangles
-            pos = self.rest_positions()[self.body.surface.vertex_ids]
-            edges = np.linalg.norm(pos[tri[:, [1, 2, 0]]] - pos[tri], axis=2)
-            # Vertices within a surface edge of a collider (predicted) become candidates.
-            self._contact_margin = float(edges.mean())
+        margin = self._margin()
         # Round colliders press into faces between vertices; boxes and planes are left to
         # vertex contacts (a box edge can still cut a coarse face between two vertices).
         round_ = any(c.shape in ("sphere", "capsule") for c in self.colliders.values())
@@ -403,7 +409,7 @@ class Simulator:
         # Start poses of this (sub-)step: a moving collider drags what sticks to it (friction.py).
         starts = [self._collider_start.get(name) for name in self.colliders]
         return {"colliders": colliders, "vertices": self.body.surface.vertex_ids,
-                "margin": self._contact_margin,
+                "margin": margin,
                 "triangles": self.body.surface.triangles if round_ else None,
                 "friction": [c.friction for c in colliders], "starts": starts}
 
