@@ -59,7 +59,10 @@ class Simulator:
         self.model.watch(self.body.surface.vertex_ids)         # only the surface is rebuilt per frame
         self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
         n = scene["model"]["blas_threads"]
-        self._blas_threads = BlasThreads((1 if self.model.kind == "reduced" else None) if n == "auto" else n)
+        # auto: one BLAS thread for a reduced model; a full-space one keeps MKL's threads for
+        # PARDISO and gets one OpenBLAS thread for its small dense products (threads.py).
+        self._blas_threads = (BlasThreads(n) if n != "auto" else BlasThreads(1) if self.model.kind == "reduced"
+                              else BlasThreads(1, apis=("openblas",)))
         self.reset()
 
     # ----------------------------------------------------------------- state

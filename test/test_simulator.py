@@ -147,7 +147,7 @@ def test_reduced_cantilever_scene_api():
 
 def test_steps_run_with_the_scene_blas_threads_and_restore_them():
     """model.blas_threads limits BLAS inside a step (threads.py) and nowhere else."""
-    from threadpoolctl import threadpool_info
+    from threadpoolctl import threadpool_info, threadpool_limits
     from mdss_ros.errors import SceneError
     from mdss_ros.threads import BlasThreads
 
@@ -169,7 +169,21 @@ def test_steps_run_with_the_scene_blas_threads_and_restore_them():
         load_scene("cantilever", {"model.blas_threads": 0})
     assert load_scene("cantilever", {"model.blas_threads": None})["model"]["blas_threads"] is None
     sim = Simulator("cantilever", {"body.mesh.cell": 0.05, "model.kind": "full"})
-    assert sim._blas_threads.n is None           # auto: a full-space model keeps every core
+    sim.step()                                   # PARDISO (MKL) loaded
+
+    def by_library():
+        return {p["filepath"]: (p["internal_api"], p["num_threads"]) for p in threadpool_info()
+                if p["user_api"] == "blas"}
+    # auto: a full-space model keeps MKL's threads (PARDISO) and gets one OpenBLAS thread,
+    # whatever the process set before (two threads everywhere here).
+    with threadpool_limits(limits=2, user_api="blas"):
+        outside = by_library()
+        with sim._blas_threads():
+            inside = by_library()
+        assert by_library() == outside and set(inside) == set(outside)
+    assert {api for api, _ in outside.values()} >= {"openblas", "mkl"}
+    for path, (api, n) in inside.items():
+        assert outside[path][1] == 2 and n == (1 if api == "openblas" else 2), (path, api, n)
 
 
 def test_a_collider_swept_in_sub_steps_counts_the_work_of_every_sub_step():
