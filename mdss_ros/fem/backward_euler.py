@@ -39,8 +39,18 @@ class NewtonSettings:
     beta: float = 0.0
 
 
+#: projection "auto": after a step whose step matrix was not positive definite, the next
+#: steps start from the projected tangent, and every PROBE_EVERY-th of such a run tries the
+#: exact one first again. A squeezed body stays squeezed: grasp_lift's unprojected
+#: factorisation failed in 181 of its first 215 steps, and in every step after a failed
+#: one (180 of 180), where that attempt (tangent and failed factorisation) was 1.6 of the
+#: step's 4.8 ms in those phases (docs/performance.md, Session 25).
+PROBE_EVERY = 8
+
+
 class BackwardEuler:
-    """Steps a FEMForceModel; state x, v are (n_verts, 3) arrays."""
+    """Steps a FEMForceModel; state x, v are (n_verts, 3) arrays. projected_run: the
+    consecutive steps that used the projected tangent (part of the model's state)."""
 
     def __init__(self, model, dt, settings=None, solver_backend="auto"):
         if not dt > 0:
@@ -51,6 +61,7 @@ class BackwardEuler:
         # A step's matrix is well conditioned: no iterative refinement of its solves (linear_solver.py).
         self.solver = SparseSolver(solver_backend, refine=False)
         self.stats = {}
+        self.projected_run = 0
 
     def _potential(self, v, v0, x0, D, f_ext_free, elastic=None):
         """Phi(v); elastic is E(x0 + dt v) when the caller already has it."""
@@ -165,7 +176,10 @@ class BackwardEuler:
         v0 = m.free(v)
         f_ext_free = m.free(f_ext)
         vk = np.zeros_like(v0)
-        project = s.projection == "always"
+        # auto: the exact tangent first, unless the last steps needed the projected one
+        # (PROBE_EVERY).
+        project = s.projection == "always" or (s.projection == "auto" and self.projected_run % PROBE_EVERY != 0)
+        started_projected = project and s.projection == "auto"
         D = None
         r0_norm = None
         iterations = 0
@@ -247,6 +261,8 @@ class BackwardEuler:
             if s.max_iterations > 1 and float(np.linalg.norm(step_len * dv)) <= 1e-12 * (1.0 + float(np.linalg.norm(vk))):
                 converged = True
                 break
+        if s.projection == "auto":
+            self.projected_run = self.projected_run + 1 if projected_any else 0
         v_new = m.expand(vk)
         x_new = x + dt * v_new
         if rows is not None:
@@ -256,6 +272,7 @@ class BackwardEuler:
             "converged": bool(converged or s.max_iterations == 1),
             "residual": r_norm / max(r0_norm, 1e-300) if r0_norm else 0.0,
             "projected": bool(projected_any),
+            "projected_start": bool(started_projected),
             "line_search_cuts": line_search_cuts,
             "assembly_ms": 1e3 * t_asm,
             "factor_ms": 1e3 * t_fac,

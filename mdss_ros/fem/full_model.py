@@ -30,6 +30,12 @@ class VertexState:
         self.x = self.body.vertices.copy()
         self.v = np.zeros_like(self.x)
         self.contact = None
+        self._set_projected_run(0)
+
+    def _set_projected_run(self, n):
+        """The integrator's run of projected steps (backward_euler.PROBE_EVERY), if it has one."""
+        if hasattr(self.integrator, "projected_run"):
+            self.integrator.projected_run = int(n)
 
     @property
     def dt(self):
@@ -95,7 +101,8 @@ class VertexState:
         set_state(snapshot) restores it exactly (the stability guard rolls back with it).
         share (model_api.Model.get_state) changes nothing here: x and v are written in
         place (pinned rows, set_rigid_velocity), so they are always copied."""
-        return {"x": self.x.copy(), "v": self.v.copy(), "contact": self.contact}
+        return {"x": self.x.copy(), "v": self.v.copy(), "contact": self.contact,
+                "projected_run": getattr(self.integrator, "projected_run", 0)}
 
     def set_state(self, x, v=None):
         """Restore a get_state() snapshot (x a dict), or set positions and velocities x, v
@@ -103,6 +110,7 @@ class VertexState:
         if isinstance(x, dict):
             self.x, self.v = x["x"].copy(), x["v"].copy()
             self.contact = x.get("contact")
+            self._set_projected_run(x.get("projected_run", 0))
             return
         if v is None:
             raise ValueError("set_state(x, v): v is missing (or pass a get_state() snapshot)")
@@ -198,6 +206,7 @@ class EmbeddedNodes:
         self.x = self.node_rest.copy()
         self.v = np.zeros_like(self.x)
         self.contact = None
+        self._set_projected_run(0)
 
     def vertex_positions(self):
         return self.embedding.apply(self.x)
