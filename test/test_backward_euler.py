@@ -93,41 +93,39 @@ def test_sparse_backends_agree():
     np.testing.assert_allclose(out[1], out[2], rtol=1e-9, atol=1e-12)
 
 
-def test_projection_auto_starts_projected_after_an_indefinite_step_and_probes():
+@pytest.mark.parametrize("beta", [0.0, 1e-3])
+def test_projection_auto_starts_projected_after_an_indefinite_step_and_probes(beta):
     """projection auto: a step whose exact step matrix is indefinite retries projected, the
-    next steps start from the projected tangent (the same step as projection always from
-    the same state), and every PROBE_EVERY-th step of such a run tries the exact one first."""
+    next steps start from the projected tangent, and every PROBE_EVERY-th step of such a
+    run tries the exact one first. A projected step, started or retried, is the step
+    projection always takes from the same state (its stiffness damping beta K too); any
+    other is the exact step (projection never)."""
     from mdss_ros.fem.backward_euler import PROBE_EVERY
-    from mdss_ros.linear_solver import NotPositiveDefinite
     m = _model("stvk", pinned=np.flatnonzero(box(size=(1.0, 0.5, 0.5), cell=0.25).vertices[:, 0] < 1e-9))
-    be = BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1))
-    always = BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1, projection="always"))
-    never = BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1, projection="never"))
+    steppers = {p: BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1, projection=p, beta=beta))
+                for p in ("auto", "always", "never")}
+    be = steppers["auto"]
     x, v = m.X.copy(), np.zeros_like(m.X)
     x[m.X[:, 0] > 0.99, 0] -= 0.4             # inverted tip: indefinite for many steps
-    runs = []
+    runs, kinds = [], set()
     for k in range(3 * PROBE_EVERY):
         run = be.projected_run
         x1, v1 = be.step(x, v, np.zeros_like(x))
         st = be.stats
         assert st["projected_start"] == (run % PROBE_EVERY != 0), (k, run)
-        if st["projected_start"]:
-            xa, va = always.step(x, v, np.zeros_like(x))
-            assert np.array_equal(xa, x1) and np.array_equal(va, v1)
-        else:                                   # the exact tangent was tried first, as before
-            try:
-                never.step(x, v, np.zeros_like(x))
-                assert not st["projected"]
-            except NotPositiveDefinite:
-                assert st["projected"]
+        same = steppers["always" if st["projected"] else "never"].step(x, v, np.zeros_like(x))
+        assert np.array_equal(same[0], x1) and np.array_equal(same[1], v1), (k, st["projected"])
+        kinds.add((st["projected_start"], st["projected"]))
         assert be.projected_run == (run + 1 if st["projected"] else 0)
         runs.append(run)
         x, v = x1, v1
     assert PROBE_EVERY in runs                   # a run of projected steps reached a probe
+    assert {(False, True), (True, True), (False, False)} <= kinds   # retried, started, exact
 
 
 def test_a_full_models_state_carries_its_projected_run():
-    """The projected run is state: a snapshot restores it, reset clears it."""
+    """The projected run is state: a snapshot restores it; reset and positions set by hand
+    clear it."""
     from mdss_ros.simulator import Simulator
     sim = Simulator("cantilever", {"body.mesh.cell": 0.1, "model.kind": "full"})
     integ = sim.model.integrator
@@ -136,5 +134,8 @@ def test_a_full_models_state_carries_its_projected_run():
     integ.projected_run = 0
     sim.model.set_state(snap)
     assert integ.projected_run == 5
+    sim.model.set_state(snap["x"], snap["v"])   # a configuration set by hand starts exact
+    assert integ.projected_run == 0
+    sim.model.set_state(snap)
     sim.reset()
     assert integ.projected_run == 0

@@ -219,6 +219,12 @@ class BackwardEuler:
                 # Newton direction a descent direction of Phi.
                 project = projected_any = True
                 _, _, K_data = m.tangent(xk, project=True)
+                if k == 0:
+                    # The damping's stiffness is the first iterate's tangent, projected too:
+                    # PSD damping, and the step projection: always takes (and a projected
+                    # start). r does not change: D multiplies vk = 0 at the first iterate.
+                    D_data = s.alpha * m.M_data + s.beta * K_data
+                    D = m.pattern.matrix(D_data)
                 A = m.pattern.matrix(m.M_data + dt * D_data + dt * dt * K_data)
                 self.solver.factor(A)
             t1 = time.perf_counter()

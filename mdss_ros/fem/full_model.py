@@ -114,6 +114,7 @@ class VertexState:
             return
         if v is None:
             raise ValueError("set_state(x, v): v is missing (or pass a get_state() snapshot)")
+        self._set_projected_run(0)           # a new configuration: the exact tangent first
         pinned = self.body.pinned
         self.x = np.array(x, dtype=np.float64)
         self.v = np.array(v, dtype=np.float64)
