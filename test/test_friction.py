@@ -155,6 +155,9 @@ def test_compiled_proximal_rounds_match_the_python_rounds_bit_for_bit():
                 assert np.array_equal(info[key], ref_info[key]), (trial, rounds, key)
         public, _ = fr.solve_proximal(W, g, mu, lam0=lam0, definite=True)
         assert np.array_equal(public, ref)
+        bad = lam0.copy()
+        bad[0, 0] = np.nan                         # numpy's maxima propagate NaN, the kernel's would not
+        assert fr._proximal_compiled(W, g, mu, bad, eps, 1e-12, fr.PROXIMAL_ROUNDS) is None
     assert compiled > 150 and compiled + declined == 240   # most warm starts converge compiled
 
 

@@ -618,6 +618,10 @@ def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
     of 3,000; docs/performance.md, Session 25)."""
     m = len(g) // 3
     f64 = np.float64
+    # The kernel's maxima skip NaN where numpy's propagate it, and it adds the shift in
+    # float64: other input goes the Python way.
+    if not (W.dtype == f64 and np.isfinite(W).all() and np.isfinite(g).all() and np.isfinite(lam0).all()):
+        return None
     mu = mu if (isinstance(mu, np.ndarray) and mu.shape == (m,) and mu.dtype == f64 and mu.flags.c_contiguous) \
         else np.ascontiguousarray(np.broadcast_to(np.asarray(mu, dtype=f64), (m,)))
     stick = np.empty(m, dtype=np.bool_)
