@@ -60,9 +60,9 @@ class Simulator:
         self.guard = StabilityGuard(self.model, self.body.tets, GuardSettings.from_scene(scene["model"]["guard"]))
         n = scene["model"]["blas_threads"]
         # auto: one BLAS thread for a reduced model; a full-space one keeps MKL's threads for
-        # PARDISO and gets one OpenBLAS thread for its small dense products (threads.py).
+        # PARDISO and gets one thread of any other BLAS for its small dense products (threads.py).
         self._blas_threads = (BlasThreads(n) if n != "auto" else BlasThreads(1) if self.model.kind == "reduced"
-                              else BlasThreads(1, apis=("openblas",)))
+                              else BlasThreads(1, skip=("mkl",)))
         self.reset()
 
     # ----------------------------------------------------------------- state

@@ -9,7 +9,8 @@ session note). So a reduced model steps with `model.blas_threads` BLAS threads (
 and the library's setting is left alone everywhere else (precompute keeps its threads). A
 full-space model keeps MKL's threads while stepping ("auto"): its sparse factorisation
 (MKL PARDISO, which threadpoolctl also counts as BLAS) took 9.7 s instead of 5.4 s on
-armadillo_class's 176K DOFs with one thread. Its OpenBLAS gets one thread: it multiplies
+armadillo_class's 176K DOFs with one thread. Its other BLAS (OpenBLAS here) gets one
+thread: it multiplies
 the contact working set's columns (a Gram matrix of 375 x 90 on grasp_lift), where two
 threads gave 14-24 ms spikes against 0.2-0.3 ms at load 2.3 when numpy was imported
 before mdss_ros (which then cannot set OPENBLAS_NUM_THREADS). numba's own pool is not
@@ -20,15 +21,15 @@ import contextlib
 
 class BlasThreads:
     """Context manager factory: `with BlasThreads(1)(): ...` limits every BLAS library
-    loaded in the process to n threads inside the block (apis: only those whose
-    threadpoolctl internal_api is listed, e.g. ("openblas",)). n = None leaves them alone.
+    loaded in the process to n threads inside the block, except those whose threadpoolctl
+    internal_api is in skip (e.g. ("mkl",)). n = None leaves them alone.
     The library list is read on first use (after numpy/scipy are loaded). It talks to
     the libraries' controllers directly: threadpoolctl's `limit()` re-reads every
     library's info on each call, about 75 us, a quarter of a small model's step."""
 
-    def __init__(self, n, apis=None):
+    def __init__(self, n, skip=()):
         self.n = n
-        self.apis = apis              # threadpoolctl internal_api names to limit (None: all)
+        self.skip = tuple(skip)       # threadpoolctl internal_api names left alone (e.g. "mkl")
         self._libs = None
 
     def __call__(self):
@@ -42,7 +43,7 @@ class BlasThreads:
                 return _NULL
             self._libs = [_thread_calls(lib) for lib in
                           ThreadpoolController().select(user_api="blas").lib_controllers
-                          if self.apis is None or lib.internal_api in self.apis]
+                          if lib.internal_api not in self.skip]
         return _Limited(self._libs, self.n)
 
 
