@@ -618,9 +618,9 @@ def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
     of 3,000; docs/performance.md, Session 25)."""
     m = len(g) // 3
     f64 = np.float64
-    # The kernel's maxima skip NaN where numpy's propagate it, and it adds the shift in
-    # float64: other input goes the Python way.
-    if not (W.dtype == f64 and np.isfinite(W).all() and np.isfinite(g).all() and np.isfinite(lam0).all()):
+    # The kernel adds the shift in float64, and declines non-finite input (its maxima
+    # skip NaN where numpy's propagate it): other input goes the Python way.
+    if W.dtype != f64:
         return None
     mu = mu if (isinstance(mu, np.ndarray) and mu.shape == (m,) and mu.dtype == f64 and mu.flags.c_contiguous) \
         else np.ascontiguousarray(np.broadcast_to(np.asarray(mu, dtype=f64), (m,)))
@@ -643,9 +643,16 @@ def _proximal_kernel(W, g, mu, lam0, eps, tol, rounds, max_iterations, unconverg
     _rho(Ws), and round k runs _newton_kernel on Ws and g - eps centre from the centre,
     which the round's answer replaces. Returns (lam (m, 3), rounds, the last round's
     iterations, cuts, |F|^2 and force scale, ok) and fills stick (m,) at the answer; ok
-    is False where a round's Newton system was singular or its answer unconverged."""
+    is False for non-finite input and where a round's Newton system was singular or its
+    answer unconverged."""
     m = mu.shape[0]
     n = 3 * m
+    for i in range(n):
+        if not np.isfinite(g[i]) or not np.isfinite(lam0.ravel()[i]):
+            return lam0, 0, 0, 0, 0.0, 1e-300, False
+        for j in range(n):
+            if not np.isfinite(W[i, j]):
+                return lam0, 0, 0, 0, 0.0, 1e-300, False
     Ws = W.copy()
     for i in range(n):
         Ws[i, i] += eps
