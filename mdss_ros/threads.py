@@ -10,11 +10,10 @@ and the library's setting is left alone everywhere else (precompute keeps its th
 full-space model keeps MKL's threads while stepping ("auto"): its sparse factorisation
 (MKL PARDISO, which threadpoolctl also counts as BLAS) took 9.7 s instead of 5.4 s on
 armadillo_class's 176K DOFs with one thread. Its other BLAS (OpenBLAS here) gets one
-thread: it multiplies
-the contact working set's columns (a Gram matrix of 375 x 90 on grasp_lift), where two
-threads gave 14-24 ms spikes against 0.2-0.3 ms at load 2.3 when numpy was imported
-before mdss_ros (which then cannot set OPENBLAS_NUM_THREADS). numba's own pool is not
-affected.
+thread: it multiplies the contact working set's columns (a Gram matrix of 375 x 90 on
+grasp_lift), where two threads gave 14-24 ms spikes against 0.2-0.3 ms at load 2.3 when
+numpy was imported before mdss_ros (which then cannot set OPENBLAS_NUM_THREADS). numba's
+own pool is not affected.
 """
 import contextlib
 

@@ -44,7 +44,8 @@ class NewtonSettings:
 #: exact one first again. A squeezed body stays squeezed: grasp_lift's unprojected
 #: factorisation failed in 181 of its first 215 steps, and in every step after a failed
 #: one (180 of 180), where that attempt (tangent and failed factorisation) was 1.6 of the
-#: step's 4.8 ms in those phases (docs/performance.md, Session 25).
+#: 4.5 ms its tangents, factorisations and solve took (medians under load;
+#: docs/performance.md, Session 25).
 PROBE_EVERY = 8
 
 
