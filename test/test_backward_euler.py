@@ -139,3 +139,23 @@ def test_a_full_models_state_carries_its_projected_run():
     sim.model.set_state(snap)
     sim.reset()
     assert integ.projected_run == 0
+
+
+def test_projection_without_memory_tries_the_exact_tangent_every_step():
+    """projection_memory False (the precompute's training): every step tries the exact
+    tangent first, and a projected retry keeps the exact tangent's stiffness damping, so
+    with beta > 0 it is not projection always's step (the policy before the memory)."""
+    m = _model("stvk", pinned=np.flatnonzero(box(size=(1.0, 0.5, 0.5), cell=0.25).vertices[:, 0] < 1e-9))
+    old = BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1, beta=1e-5, projection_memory=False))
+    always = BackwardEuler(m, 1 / 30, NewtonSettings(max_iterations=1, beta=1e-5, projection="always"))
+    x, v = m.X.copy(), np.zeros_like(m.X)
+    x[m.X[:, 0] > 0.99, 0] -= 0.4
+    projected = 0
+    for _ in range(10):
+        x1, v1 = old.step(x, v, np.zeros_like(x))
+        assert not old.stats["projected_start"] and old.projected_run == 0
+        if old.stats["projected"]:
+            projected += 1
+            assert not np.array_equal(always.step(x, v, np.zeros_like(x))[0], x1)
+        x, v = x1, v1
+    assert projected >= 1

@@ -29,12 +29,16 @@ from ..linear_solver import NotPositiveDefinite, SparseSolver
 class NewtonSettings:
     """max_iterations >= 1; tolerance on |r| relative to the first residual;
     line_search: backtrack on Phi; projection: 'auto' (PSD-project K only when the
-    system is not positive definite), 'always' or 'never'."""
+    system is not positive definite), 'always' or 'never'; projection_memory (auto): start
+    projected after an indefinite step (PROBE_EVERY) and damp a projected step with the
+    projected K. False is the policy before it (the exact tangent first in every step, the
+    damping's K the exact one), which the precompute's training keeps (training.py)."""
 
     max_iterations: int = 1
     tolerance: float = 1e-6
     line_search: bool = True
     projection: str = "auto"
+    projection_memory: bool = True
     alpha: float = 0.0
     beta: float = 0.0
 
@@ -179,8 +183,9 @@ class BackwardEuler:
         vk = np.zeros_like(v0)
         # auto: the exact tangent first, unless the last steps needed the projected one
         # (PROBE_EVERY).
-        project = s.projection == "always" or (s.projection == "auto" and self.projected_run % PROBE_EVERY != 0)
-        started_projected = project and s.projection == "auto"
+        memory = s.projection == "auto" and s.projection_memory
+        project = s.projection == "always" or (memory and self.projected_run % PROBE_EVERY != 0)
+        started_projected = project and memory
         D = None
         r0_norm = None
         iterations = 0
@@ -220,7 +225,7 @@ class BackwardEuler:
                 # Newton direction a descent direction of Phi.
                 project = projected_any = True
                 _, _, K_data = m.tangent(xk, project=True)
-                if k == 0:
+                if k == 0 and memory:
                     # The damping's stiffness is the first iterate's tangent, projected too:
                     # PSD damping, and the step projection: always takes (and a projected
                     # start). r does not change: D multiplies vk = 0 at the first iterate.
@@ -268,7 +273,7 @@ class BackwardEuler:
             if s.max_iterations > 1 and float(np.linalg.norm(step_len * dv)) <= 1e-12 * (1.0 + float(np.linalg.norm(vk))):
                 converged = True
                 break
-        if s.projection == "auto":
+        if memory:
             self.projected_run = self.projected_run + 1 if projected_any else 0
         v_new = m.expand(vk)
         x_new = x + dt * v_new

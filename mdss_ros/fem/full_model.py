@@ -274,6 +274,7 @@ class FullSpaceModel(VertexState):
                                   tolerance=integrator["tolerance"],
                                   line_search=integrator["line_search"],
                                   projection=integrator["projection"],
+                                  projection_memory=integrator.get("projection_memory", True),
                                   alpha=damping["alpha"], beta=damping["beta"])
         self.integrator = BackwardEuler(self.force_model, dt, settings, solver)
         self.vertex_mass = self.force_model.vertex_mass

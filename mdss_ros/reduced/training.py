@@ -111,8 +111,11 @@ def generate_training(model, n_poses=60, stride=3, hold=15, force_scale=1.0, sou
     rng = np.random.default_rng(seed)
     surface_ids = body.surface.vertex_ids
     if source == "full":
+        # projection_memory off: the policy the cached models were trained with (the exact
+        # tangent first in every step), so their poses and cubature stay as they were.
         sim = FullSpaceModel(body, model.dt, {"newton_iterations": 1, "tolerance": 1e-6, "line_search": False,
-                                              "projection": "auto"}, {"alpha": alpha, "beta": model.beta})
+                                              "projection": "auto", "projection_memory": False},
+                             {"alpha": alpha, "beta": model.beta})
         advance, positions_now = (lambda f: sim.step(f, None)), sim.vertex_positions
     else:
         if reduced_simulation is None:
