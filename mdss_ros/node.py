@@ -414,8 +414,9 @@ class MdssNode(Node):
         value, text, runtime = PARAMETERS[name]
         if default is not None:
             value = default
-        # -p real_time_factor:=0 is an int; scene_overrides is a string or a list of strings
-        dynamic = isinstance(value, float) or name == "scene_overrides"
+        # -p real_time_factor:=0 is an int; scene_overrides is a string or a list of strings;
+        # -p rerun_mode:=off is YAML 1.1's false (_p reads it as "off").
+        dynamic = isinstance(value, float) or name in ("scene_overrides", "rerun_mode")
         desc = ParameterDescriptor(description=text, read_only=not runtime, dynamic_typing=dynamic)
         try:
             self.declare_parameter(name, value, desc)
@@ -426,12 +427,20 @@ class MdssNode(Node):
         value = self.get_parameter(name).value
         if isinstance(PARAMETERS[name][0], float) and isinstance(value, int) and not isinstance(value, bool):
             return float(value)
+        if name == "rerun_mode" and value is False:
+            return "off"
         return value
 
     @staticmethod
     def _check(name, value):
         """None if value is acceptable for parameter name, else the reason."""
         default = PARAMETERS[name][0]
+        if name == "rerun_mode" and isinstance(value, bool):
+            # The command line's YAML reads off, no and false as False (rerun_mode off) and on,
+            # yes and true as True, which names no mode.
+            if value is False:
+                return None
+            return f"rerun_mode must be one of {', '.join(_RERUN_MODES)}, got {value!r} (a YAML true: on, yes, true)"
         if isinstance(default, float):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 return f"{name} must be a finite number, got {value!r}"

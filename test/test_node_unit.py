@@ -199,6 +199,22 @@ def test_parse_overrides_and_ros_args():
     assert _ros_args(["mdss_node", "--ros-args", "-p", "a:=1"]) == ["mdss_node", "--ros-args", "-p", "a:=1"]
 
 
+def test_rerun_mode_off_from_the_command_line_is_yaml_false(tmp_path):
+    """-p rerun_mode:=off reaches the node as False (YAML 1.1 reads off as a bool): it is
+    the default mode off, not a type error at start; a YAML true names no mode."""
+    from rclpy.parameter import Parameter
+    from mdss_ros.node import StartupError
+
+    scene = {"name": "pad", "body": {"mesh": {"generator": "box", "size": [0.1, 0.1, 0.04], "cell": 0.05},
+                                     "material": {"model": "neohookean", "young": 1e5, "poisson": 0.3, "density": 1000}},
+             "model": {"kind": "full"}}
+    with node_in_process(tmp_path, scene, [Parameter("rerun_mode", value=False)]) as n:
+        assert n._p("rerun_mode") == "off" and n.driver.rerun is None
+    with pytest.raises(StartupError, match="rerun_mode must be one of off, file, spawn, serve, got True"):
+        with node_in_process(tmp_path, scene, [Parameter("rerun_mode", value=True)]):
+            pass
+
+
 def test_collider_friction_is_a_node_parameter(tmp_path):
     from rclpy.parameter import Parameter
 
