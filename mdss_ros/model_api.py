@@ -58,6 +58,10 @@ class Model(Protocol):
 
     def kinetic_energy(self): ...
 
+    def energies(self, gravity):
+        """(kinetic, elastic, gravity potential -sum m g . x) of the current state, J;
+        gravity (3,). Simulator.energy reports them."""
+
     def guard_measure(self, gravity, check_inversion=True):
         """state_measure.Measure of the current state (never raises on NaN)."""
 

@@ -349,10 +349,7 @@ class Simulator:
         return self.model.domain_poses()
 
     def energy(self):
-        kinetic = self.model.kinetic_energy()
-        elastic = self.model.elastic_energy()
-        x = self.model.vertex_positions()
-        gravity = -float((self.model.vertex_mass * (x @ self.gravity)).sum())
+        kinetic, elastic, gravity = self.model.energies(self.gravity)
         return {"kinetic": kinetic, "elastic": elastic, "gravity": gravity,
                 "total": kinetic + elastic + gravity}
 

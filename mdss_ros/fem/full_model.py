@@ -132,6 +132,12 @@ class VertexState:
     def elastic_energy(self):
         return self.force_model.energy(self.x)
 
+    def energies(self, gravity):
+        """(kinetic, elastic, gravity potential) of the current state (J): the mesh
+        vertices' -m g . x for gravity (3,)."""
+        x = self.vertex_positions()
+        return self.kinetic_energy(), self.elastic_energy(), -float((self.vertex_mass * (x @ gravity)).sum())
+
     def domain_poses(self):
         """One domain: the body's mass centre and best-fit rotation (polar decomposition)."""
         return best_fit_pose(self.body.vertices, self.x, self.vertex_mass)[None, :]

@@ -155,8 +155,14 @@ class VertexSet:
 
 def velocities(layout, x, qd, frames, v_full):
     """World velocities (n_verts, 3) of every vertex, x (n_verts, 3) their positions."""
-    out = v_full.copy()
-    rows = layout.vertex_row
+    return velocities_of(layout, np.arange(len(v_full)), x, qd, frames, v_full)
+
+
+def velocities_of(layout, ids, x, qd, frames, v_full):
+    """World velocities (len(ids), 3) of global vertex ids at positions x (len(ids), 3):
+    v + w x (x - c) + R U qd on subspace rows, v_full's rows on full-space ones."""
+    out = v_full[ids]
+    rows = layout.vertex_row[ids]
     sub = np.flatnonzero(rows >= 0)
     k = layout.row_domain[rows[sub]]
     local = np.einsum("lia,la->li", layout.U[rows[sub]], qd[k])
