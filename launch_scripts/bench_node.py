@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Benchmarks of the ROS node (numbers for the README's "Measured" section).
 
-    launch_scripts/bench_node.py latency [SCENE ...] [--seconds 10] [--set KEY=VALUE]
+    launch_scripts/bench_node.py latency [SCENE ...] [--seconds 10] [--set KEY=VALUE] [--record]
     launch_scripts/bench_node.py outputs [--sizes 10000,50000]
     launch_scripts/bench_node.py bodies [--scene cantilever] [--counts 1,2,4] [--seconds 20] [--json FILE]
     launch_scripts/bench_node.py all --json out/bench_node.json        (latency and outputs)
@@ -14,6 +14,9 @@ reflects the input arrives: /clock (the step that applied it), ~/domain_poses (a
 per-step output) and ~/surface/points (30 Hz, so up to 33 ms of waiting for the grid
 is included). The real-time factor is the median of /diagnostics over the run, and
 the achievable one is measured again with real_time_factor 0 (as fast as possible).
+With --record the node also records, as launch_scripts/demo.sh has it do: an MCAP bag of
+every input and output (mcap_path) and a rerun file (rerun_mode file), both in the run's
+work folder.
 
 outputs: the cost per frame of building and publishing each output type for a
 synthetic surface of S vertices (2S triangles, 8 domains), with a subscriber process
@@ -162,7 +165,7 @@ def client_main(seconds, period, out, handle):
     return 0
 
 
-def bench_latency(scenes, seconds, overrides, workdir):
+def bench_latency(scenes, seconds, overrides, workdir, record=False):
     from mdss_ros.scene import load_scene
     rows = []
     for scene in scenes:
@@ -179,6 +182,9 @@ def bench_latency(scenes, seconds, overrides, workdir):
                               mesh_publish_rate=0.0, marker_publish_rate=0.0, diagnostics_rate=1.0)
                 if overrides:
                     params["scene_overrides"] = overrides
+                if record:
+                    params.update(mcap_path=str(launch.dir / "bag"), rerun_mode="file",
+                                  rerun_path=str(launch.dir / "run.rrd"))
                 node = launch.node(**params)
                 node.wait_for(r"\] \[mdss\]: ready:", timeout=3600)
                 probe = launch.probe()
@@ -193,7 +199,7 @@ def bench_latency(scenes, seconds, overrides, workdir):
             values = [{kv["key"]: kv["value"] for kv in d["status"][0]["values"]} for d in diags]
             running = [v for v in values if v["state"] == "running" and int(v["steps_in_window"]) > 0]
             built = [line for line in node.lines if "model built" in line]
-            row = {"scene": Path(scene).stem, "real_time_factor_target": rtf, "dt": res["dt"],
+            row = {"scene": Path(scene).stem, "real_time_factor_target": rtf, "record": bool(record), "dt": res["dt"],
                    "rtf_median": _median([float(v["real_time_factor"]) for v in running]),
                    "rtf_client": res["rtf_client"],
                    "step_ms_median": _median([float(v["step_ms_median"]) for v in running]),
@@ -452,6 +458,7 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--sizes", default="10000,50000")
     ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--record", action="store_true", help="latency: the node records an MCAP bag and a rerun file")
     ap.add_argument("--json", default=None)
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--client", default=None, help=argparse.SUPPRESS)
@@ -467,7 +474,8 @@ def main(argv=None):
     out = {}
     if args.what in ("latency", "all"):
         scenes = args.scenes or sorted(str(p) for p in (REPO / "msg_scenes").glob("*.yaml"))
-        out["latency"] = bench_latency(scenes, args.seconds if args.seconds is not None else 10.0, args.set, workdir)
+        out["latency"] = bench_latency(scenes, args.seconds if args.seconds is not None else 10.0, args.set, workdir,
+                                       record=args.record)
     if args.what in ("outputs", "all"):
         out["outputs"] = bench_outputs([int(s) for s in args.sizes.split(",")], args.frames, workdir)
     if args.what == "bodies":
