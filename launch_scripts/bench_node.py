@@ -52,6 +52,7 @@ growing lag.
 import argparse
 import json
 import os
+import shutil
 import statistics
 import sys
 import time
@@ -183,6 +184,9 @@ def bench_latency(scenes, seconds, overrides, workdir, record=False):
                 if overrides:
                     params["scene_overrides"] = overrides
                 if record:
+                    # A new bag folder each run (a reused --workdir holds the last one, which the
+                    # node would refuse, then run without recording).
+                    shutil.rmtree(launch.dir / "bag", ignore_errors=True)
                     params.update(mcap_path=str(launch.dir / "bag"), rerun_mode="file",
                                   rerun_path=str(launch.dir / "run.rrd"))
                 node = launch.node(**params)
@@ -199,7 +203,11 @@ def bench_latency(scenes, seconds, overrides, workdir, record=False):
             values = [{kv["key"]: kv["value"] for kv in d["status"][0]["values"]} for d in diags]
             running = [v for v in values if v["state"] == "running" and int(v["steps_in_window"]) > 0]
             built = [line for line in node.lines if "model built" in line]
-            row = {"scene": Path(scene).stem, "real_time_factor_target": rtf, "record": bool(record), "dt": res["dt"],
+            recorded = record and any((launch.dir / "bag").glob("*.mcap")) and (launch.dir / "run.rrd").is_file()
+            if record and not recorded:
+                print(f"bench_node latency: {Path(scene).stem}: --record asked, but the node wrote no bag or rerun "
+                      f"file (its log: {launch.dir})", file=sys.stderr)
+            row = {"scene": Path(scene).stem, "real_time_factor_target": rtf, "record": bool(recorded), "dt": res["dt"],
                    "rtf_median": _median([float(v["real_time_factor"]) for v in running]),
                    "rtf_client": res["rtf_client"],
                    "step_ms_median": _median([float(v["step_ms_median"]) for v in running]),
@@ -458,7 +466,8 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--sizes", default="10000,50000")
     ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--record", action="store_true", help="latency: the node records an MCAP bag and a rerun file")
+    ap.add_argument("--record", action="store_true", help="latency: the node records an MCAP bag and a rerun file "
+                                                          "(latency only)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--client", default=None, help=argparse.SUPPRESS)

@@ -14,6 +14,8 @@ import subprocess
 import sys
 import time
 from collections import Counter
+
+import pytest
 from pathlib import Path
 
 from mdss_ros.record import mcap_recorder as mr
@@ -105,3 +107,50 @@ def test_chunks_are_closed_on_the_writer_thread_and_flush_waits_for_them(tmp_pat
     assert closed_on and set(closed_on) == {"mcap-writer"}, closed_on
     messages, info = mr.recover(path)
     assert len(messages) == 200 and info["complete"] and rec.counts == {"/h": 200}
+
+
+def test_a_writer_thread_error_stops_the_recording_and_is_reported_on_the_callers_thread(tmp_path, monkeypatch):
+    """Any error of the writer thread (here a ValueError from mcap's writer) stops the
+    recording: later writes return False, on_error hears it once on the caller's thread,
+    and an on_error that calls the recorder (flush, finish) does not deadlock. A time an
+    MCAP record cannot hold is refused by write() itself."""
+    import threading
+    from mcap.writer import Writer
+    from mdss_ros.ros import convert
+    real_add = Writer.add_message
+    calls = {"n": 0}
+
+    def add_message(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise ValueError("bad record")
+        return real_add(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "add_message", add_message)
+    heard = []
+    rec = None
+
+    def on_error(text):
+        heard.append((text, threading.current_thread().name))
+        rec.flush()                           # the recorder from its own error callback
+        rec.finish()
+
+    rec = mr.McapRecorder(tmp_path / "err.mcap", flush_interval_s=0, on_error=on_error)
+    with pytest.raises(mr.RecordingError, match="publish_time_ns"):
+        rec.write("/h", convert.header(0.0, "x"), 1, publish_time_ns=-1)
+    done = []
+
+    def writer():
+        for k in range(50):
+            done.append(rec.write("/h", convert.header(0.0, f"m{k}"), k + 1))
+            time.sleep(0.005)
+
+    t = threading.Thread(target=writer)
+    t.start()
+    t.join(timeout=30)
+    assert not t.is_alive(), "write() hung"
+    assert done[0] and not done[-1]                        # taken, then refused once it stopped
+    assert len(heard) == 1 and "bad record" in heard[0][0] and heard[0][1] != "mcap-writer", heard
+    summary = rec.finish()
+    assert summary["finished"] and "bad record" in summary["error"]
+    assert len(heard) == 1

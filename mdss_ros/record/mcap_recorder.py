@@ -41,8 +41,8 @@ Crash safety.
   compresses the chunks and flushes them. Closing a chunk on the caller's thread took a
   fifth of the node's time on armadillo_class with its 30 Hz points recorded (zstd: 31 ms
   for a 4.6 MB chunk of them; session 26); the thread does it on the other core (zstd
-  and crc32 release the GIL). The queue holds at most QUEUE_LIMIT messages: a disk slower
-  than the simulation makes write() wait rather than memory grow.
+  and crc32 release the GIL). At most QUEUE_LIMIT messages and QUEUE_BYTES wait: a disk
+  slower than the simulation makes write() wait rather than memory grow.
 - SIGKILL: the data section is written as complete chunks: a chunk is closed and flushed
   to the OS whenever `flush_interval_s` of wall time passed since the last flush (the
   thread checks every BATCH_S, so an idle recorder flushes too) or it reaches chunk_size
@@ -52,10 +52,11 @@ Crash safety.
   covered (no fsync).
 - Errors. An unwritable path raises RecordingError from the constructor (the header is
   written and flushed at once, so a full disk shows there too); so do a topic's type
-  change and an unknown type, from write(). A write error later (disk full) stops the
-  recording: `error` says why, `on_error(text)` hears it once, from the writer thread
-  (default: a line on stderr), later writes return False, and the caller's simulation
-  goes on.
+  change, an unknown type and a time outside 0..2^64 ns, from write(). A write error
+  later (disk full), or any error of the writer thread, stops the recording: `error` says
+  why, `on_error(text)` hears it once, on the caller's thread at its next write, flush or
+  finish (default: a line on stderr), later writes return False, and the caller's
+  simulation goes on. on_error may call the recorder.
 
 Signals. `stop_on_signals()` makes SIGINT/SIGTERM set `stop_requested` (a second one
 raises KeyboardInterrupt) for a process that owns the recorder and polls it between
@@ -131,13 +132,24 @@ def _default_qos():
 
 
 # --------------------------------------------------------------------- recorder
+def _checked_time(t, what, name, low=0):
+    """int(t) for an MCAP record's time (ns), or RecordingError outside [low, 2^64)."""
+    t = int(t)
+    if not low <= t < _TIME_MAX:
+        raise RecordingError(f"{what}: {name} must be below 2^64 ns and not negative, got {t}")
+    return t
+
+
 def _default_on_error(text):
     print(f"mdss: WARNING: {text}", file=sys.stderr, flush=True)
 
 
-#: Messages queued for the writer thread at most (write() waits beyond): about 9 s of the
-#: node's outputs at 90 Hz.
+#: What may wait for the writer thread (write() waits beyond either): messages, about 9 s
+#: of the node's outputs at 90 Hz, and bytes, about 27 s of armadillo_class's.
 QUEUE_LIMIT = 10_000
+QUEUE_BYTES = 256 * 1024 * 1024
+#: Times an MCAP record can hold (unsigned 64-bit nanoseconds).
+_TIME_MAX = 2 ** 64
 #: The writer thread's period (s): what it writes each time is what was queued meanwhile.
 BATCH_S = 0.02
 
@@ -198,6 +210,10 @@ class McapRecorder:
             raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}") from err
         atexit.register(self.finish)
         self._queue = queue.Queue(maxsize=QUEUE_LIMIT)
+        self._queued_bytes = 0
+        self._room = threading.Condition()     # the writer thread made room (QUEUE_BYTES)
+        self._closing = False                  # finish() has begun: nothing more is taken
+        self._unreported = False               # an error on_error has not heard yet
         self._worker = threading.Thread(target=self._work, name="mcap-writer", daemon=True)
         self._worker.start()
 
@@ -211,7 +227,32 @@ class McapRecorder:
 
     @property
     def ok(self):
-        return self.error is None and not self.finished
+        return self.error is None and not self.finished and not self._closing
+
+    def _report(self):
+        """on_error(error) once, on the caller's thread (the writer thread only records the
+        error: a callback run there could wait on a lock its caller holds)."""
+        if self._unreported:
+            self._unreported = False
+            try:
+                self.on_error(self.error)
+            except Exception:  # noqa: BLE001 - a reporting failure must not stop the caller
+                pass
+
+    def _put(self, item, size=0):
+        """Queue a record for the writer thread (under _lock); False, with the error
+        recorded, when the thread is gone."""
+        if not self._worker.is_alive():
+            self._fail(RuntimeError("the writer thread stopped"))
+            self._report()
+            return False
+        if size:
+            with self._room:
+                while self._queued_bytes > QUEUE_BYTES and self._worker.is_alive():
+                    self._room.wait(0.1)
+                self._queued_bytes += size
+        self._queue.put(item)
+        return True
 
     # ----------------------------------------------------------------- writing
     def _topic(self, topic, type_name, qos):
@@ -243,8 +284,9 @@ class McapRecorder:
         return cid
 
     def write(self, topic, msg, log_time_ns, type_name=None, qos=None, publish_time_ns=None):
-        """Record one message (a typestore object or CDR bytes); True if written, False if
-        recording stopped. CDR bytes need type_name; an object has its own type.
+        """Record one message (a typestore object or CDR bytes); True if taken (the writer
+        thread writes it, in order), False if recording stopped. CDR bytes need type_name;
+        an object has its own type. Times are ns in [0, 2^64).
 
         qos: offered QoS dict (ros_messages.qos_profile) used when the topic is first seen.
         """
@@ -259,10 +301,13 @@ class McapRecorder:
                 raise RecordingError(f"{topic}: a {own} message given as {type_name}")
             type_name = own
             data = cdr_bytes(msg)
+        # A log time below the last one written (0 at first) is raised to it, as before.
+        log_time = _checked_time(log_time_ns, topic, "log_time_ns", low=-_TIME_MAX)
+        publish_time = None if publish_time_ns is None else _checked_time(publish_time_ns, topic, "publish_time_ns")
         with self._lock:
+            self._report()
             if not self.ok:
                 return False
-            log_time = int(log_time_ns)
             if log_time < self._last_log:
                 log_time = self._last_log
                 self.clamped += 1
@@ -273,9 +318,8 @@ class McapRecorder:
             if self._first_log is None:
                 self._first_log = log_time
             # Queued under the lock: the thread gets messages in the order of their log times.
-            self._queue.put(("message", topic, log_time, data,
-                             log_time if publish_time_ns is None else int(publish_time_ns), seq))
-            return True
+            return self._put(("message", topic, log_time, data, log_time if publish_time is None else publish_time,
+                              seq), len(data))
 
     def write_tf(self, transforms, log_time_ns, topic="/tf"):
         """Record geometry_msgs/TransformStamped objects as one tf2_msgs/msg/TFMessage."""
@@ -287,26 +331,33 @@ class McapRecorder:
         """An MCAP metadata record: name and a {str: str} map (written in turn with the
         messages queued before it)."""
         with self._lock:
+            self._report()
             if not self.ok:
                 return False
-            self._queue.put(("metadata", name, {str(k): str(v) for k, v in data.items()}))
-            return True
+            return self._put(("metadata", name, {str(k): str(v) for k, v in data.items()}))
 
     def add_attachment(self, name, data, media_type="application/octet-stream", log_time_ns=0):
+        log_time = _checked_time(log_time_ns, name, "log_time_ns")
+        data = bytes(data)
         with self._lock:
+            self._report()
             if not self.ok:
                 return False
-            self._queue.put(("attachment", name, bytes(data), media_type, int(log_time_ns), time.time_ns()))
-            return True
+            return self._put(("attachment", name, data, media_type, log_time, time.time_ns()), len(data))
 
     def flush(self):
-        """Write what is queued, close the open chunk and hand everything to the OS now."""
+        """Write what is queued, close the open chunk and hand everything to the OS now;
+        False if the recording has stopped (error says why) or the thread did not answer
+        within 60 s."""
         done = threading.Event()
         with self._lock:
-            if not self.ok or not self._worker.is_alive():
-                return
-            self._queue.put(("flush", done))
-        done.wait(timeout=60.0)
+            self._report()
+            if not self.ok or not self._put(("flush", done)):
+                return False
+        answered = done.wait(timeout=60.0)
+        with self._lock:
+            self._report()
+        return answered and self.error is None
 
     def _flush_locked(self):
         self._writer.flush()
@@ -319,7 +370,8 @@ class McapRecorder:
         the queue ends it (finish). It wakes on its own clock rather than on every
         message: woken for each of a step's dozen messages, it took the GIL from the
         simulation a dozen times a step, and the node's median cycle on armadillo_class
-        grew by 1.2-1.8 ms (session 26)."""
+        grew by 1.2-1.8 ms (session 26). Any error stops the recording (_fail), never the
+        thread: a thread gone silently would leave write() queueing into nothing."""
         while True:
             time.sleep(BATCH_S)
             items = []
@@ -328,15 +380,18 @@ class McapRecorder:
                     items.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
-            last = items and items[-1] is None
+            last = bool(items) and items[-1] is None
+            freed = 0
             with self._wlock:
                 for item in items:
                     if item is None:
                         break
+                    if item[0] in ("message", "attachment"):
+                        freed += len(item[3] if item[0] == "message" else item[2])
                     if self.error is None:
                         try:
                             self._apply(item)
-                        except OSError as err:
+                        except Exception as err:  # noqa: BLE001 - stop the recording, not the thread
                             self._fail(err)
                     if item[0] == "flush":
                         item[1].set()
@@ -344,8 +399,12 @@ class McapRecorder:
                         time.monotonic() - self._last_flush >= self.flush_interval_s:
                     try:
                         self._flush_locked()
-                    except OSError as err:
+                    except Exception as err:  # noqa: BLE001
                         self._fail(err)
+            if freed:
+                with self._room:
+                    self._queued_bytes -= freed
+                    self._room.notify_all()
             if last:
                 return
 
@@ -369,13 +428,13 @@ class McapRecorder:
         self._dirty = True
 
     def _fail(self, err):
-        what = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        """Stop the recording for err (on either thread); on_error hears it from _report."""
+        if self.error is not None:
+            return
+        what = err.strerror if isinstance(err, OSError) and err.strerror else (str(err) or type(err).__name__)
         self.error = f"recording to {self.path} stopped: {what}; the simulation goes on"
+        self._unreported = True
         self._close_file()
-        try:
-            self.on_error(self.error)
-        except Exception:  # noqa: BLE001 - a reporting failure must not stop the caller
-            pass
 
     def _close_file(self):
         try:
@@ -418,6 +477,8 @@ class McapRecorder:
         with self._lock:
             if self.finished:
                 return self.summary()
+            # Nothing is taken from here on (ok is False); the thread writes what was queued.
+            self._closing = True
             if self._worker.is_alive() and self._worker is not threading.current_thread():
                 self._queue.put(None)
                 self._worker.join()
@@ -442,6 +503,7 @@ class McapRecorder:
                 except OSError as err:
                     self._fail(err)
             self.finished = True
+            self._report()
             return self.summary()
 
     def _bag_info(self):
