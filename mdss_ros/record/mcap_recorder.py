@@ -286,7 +286,8 @@ class McapRecorder:
     def write(self, topic, msg, log_time_ns, type_name=None, qos=None, publish_time_ns=None):
         """Record one message (a typestore object or CDR bytes); True if taken (the writer
         thread writes it, in order), False if recording stopped. CDR bytes need type_name;
-        an object has its own type. Times are ns in [0, 2^64).
+        an object has its own type. Times are ns below 2^64; publish_time_ns is not
+        negative, and a log time below the last one (0 at first) is raised to it (clamped).
 
         qos: offered QoS dict (ros_messages.qos_profile) used when the topic is first seen.
         """
