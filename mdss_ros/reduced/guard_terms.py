@@ -80,13 +80,12 @@ class GuardTerms:
         """(kinetic, gravity) the dent adds to the vertex sums: a dented candidate l sits at
         x_l + R d_l, and vertex_velocities takes its arm about the frame centre there, so
         its velocity gains w x (R d_l)."""
-        cand = np.flatnonzero(self.compliance.index >= 0)
-        k = self.compliance.index[cand]
-        R = self.frames.R[self.compliance.domain[k]]
-        shift = np.einsum("kij,kj->ki", R, self._dent[k])                     # (c, 3) world dent
+        comp = self.compliance                  # the dent's rows are its candidates, in order
+        cand = comp.vertices
+        shift = np.einsum("kij,kj->ki", self.frames.R[comp.domain], self._dent)     # (c, 3) world dent
         x = self.positions_of(cand, dent=False)
         u = reconstruct.velocities_of(self.layout, cand, x, self.qd, self.frames, self.v_full)
-        u_dent = u + cross(self.frames.w[self.compliance.domain[k]], shift)
+        u_dent = u + cross(self.frames.w[comp.domain], shift)
         m = self.vertex_mass[cand]
         kinetic = 0.5 * float((m * ((u_dent * u_dent).sum(1) - (u * u).sum(1))).sum())
         return kinetic, -float((m * (shift @ g)).sum())
