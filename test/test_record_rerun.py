@@ -61,14 +61,18 @@ def test_rrd_holds_the_expected_entities_and_frame_counts(rrd):
             steps[c.entity_path] += rb.column("step").to_pylist()
     frames = STEPS + 1                                     # t = 0 and every step
     assert static["/world/body/surface"] == {"triangle_indices", "vertex_colors"}
-    for entity in ("/world/body/surface", "/world/domains/domain_0", "/world/domains/domain_1",
+    for entity in ("/world/body/surface", "/world/domains",
                    "/plots/energy/total", "/plots/energy/kinetic", "/plots/energy/elastic",
-                   "/plots/contact_force", "/world/contacts", "/world/contacts/forces"):
+                   "/plots/contact_force"):
         assert temporal[entity] == frames, entity
         assert {"step", "sim_time"} <= timelines[entity]
         assert sorted(steps[entity]) == list(range(frames))
     assert temporal["/plots/step_ms"] == STEPS                # no step time at t = 0
-    assert static["/world/domains/domain_0"] == {"axis_length"}
+    assert {"colors", "labels", "show_labels"} <= static["/world/domains"]
+    # The ball never reaches the beam: its empty contacts are logged once
+    # (test_rrd_contacts_are_logged_when_they_change has contacts).
+    for entity in ("/world/contacts", "/world/contacts/forces"):
+        assert steps[entity] == [0], entity
     assert "half_sizes" in static["/world/colliders/ball"] and "lengths" in static["/world/colliders/rod"]
     assert temporal["/world/colliders/ball"] == 3             # initial pose and two changes
     assert temporal["/world/colliders/rod"] == 1
@@ -90,6 +94,61 @@ def test_rrd_vertex_positions_are_the_simulators(rrd):
                     last = np.asarray(col[i].values.flatten(), dtype=np.float32).reshape(-1, 3)
     assert last is not None
     np.testing.assert_array_equal(last, want)
+
+
+def test_rrd_domain_axes_are_the_simulators_frames(rrd):
+    """The last frame's axis arrows: each domain's origin, and its rotation's columns."""
+    from scipy.spatial.transform import Rotation
+    sim = _small_sim()
+    sim.set_wrench("tip", force=(0, 0, -8.0))
+    sim.step(STEPS)
+    poses = np.asarray(sim.domain_poses())
+    found = None
+    for c in _chunks(rrd):
+        if c.entity_path == "/world/domains" and not c.is_static:
+            rb = c.to_record_batch()
+            k = rb.column("step").to_pylist()
+            for i in range(len(k)):
+                if k[i] == STEPS:
+                    found = [np.asarray(rb.column(f"Arrows3D:{n}")[i].values.flatten(), dtype=np.float64).reshape(-1, 3)
+                             for n in ("origins", "vectors")]
+    assert found is not None
+    origins, vectors = found
+    assert len(origins) == 3 * len(poses) and abs(poses[:, 3:]).max() > 0 and np.any(poses[:, 3:6] != 0)
+    np.testing.assert_allclose(origins, np.repeat(poses[:, :3], 3, axis=0), atol=1e-6)
+    R = Rotation.from_quat(poses[:, 3:7]).as_matrix()            # scipy: (x, y, z, w), as the poses
+    length = np.linalg.norm(vectors, axis=1)
+    np.testing.assert_allclose(length, length[0], rtol=1e-5)
+    np.testing.assert_allclose(vectors.reshape(-1, 3, 3) / length[0], np.swapaxes(R, 1, 2), atol=1e-5)
+
+
+def test_rrd_contacts_are_logged_when_they_change(tmp_path):
+    """Contacts are logged at the first frame, at every frame with contacts and at the first
+    one without after them: the viewer shows the latest value, so an empty frame after an
+    empty one would change nothing. The ball is put into the beam, which sags under gravity, then lifted off."""
+    sim = _small_sim()
+    path = tmp_path / "contacts.rrd"
+    counts = []
+    with RerunLogger(sim, mode="file", path=path) as log:
+        for k in range(12):
+            if k == 3:
+                sim.set_collider_pose("ball", (0.5, 0.05, 0.125))       # into the sagging beam (top at z = 0.1)
+            if k == 7:
+                sim.set_collider_pose("ball", (0.5, 0.05, 0.6))
+            if k:
+                sim.step()
+            counts.append(len(sim.contacts()))
+            assert log.log_step()
+    assert counts[0] == 0 and any(counts[3:7]) and counts[-1] == 0
+    points = {}
+    for c in _chunks(path):
+        if c.entity_path == "/world/contacts" and not c.is_static:
+            rb = c.to_record_batch()
+            for k, row in zip(rb.column("step").to_pylist(), rb.column("Points3D:positions").to_pylist()):
+                points[k] = len(row or [])
+    want = [0] + [k for k in range(1, len(counts)) if counts[k] or counts[k - 1]]
+    assert sorted(points) == want
+    assert [points[k] for k in want] == [counts[k] for k in want]
 
 
 def test_logger_modes_and_errors(tmp_path):
