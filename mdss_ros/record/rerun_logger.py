@@ -148,6 +148,10 @@ class RerunLogger:
         labels = [lab for name in self.domain_names for lab in (name, "", "")]
         rec.log("world/domains", rr.Arrows3D.from_fields(colors=np.tile(rgb, (n_dom, 1)), labels=labels,
                                                          show_labels=True), static=True)
+        # The contacts' look is static; each frame logs their positions (and arrows) only.
+        red = [(230, 30, 30)]
+        rec.log("world/contacts", rr.Points3D.from_fields(radii=[0.003], colors=red), static=True)
+        rec.log("world/contacts/forces", rr.Arrows3D.from_fields(colors=red), static=True)
         for name, spec in sim.scene["colliders"].items():
             shape = _collider_shape(rr, spec, extent, sim.scene.base_dir)
             if shape is not None:
@@ -204,9 +208,10 @@ class RerunLogger:
             # nothing, and its two log calls cost 1 ms a frame on armadillo_class, which
             # touches nothing.
             if len(c) or self._logged_contacts != 0:
-                rec.log("world/contacts", rr.Points3D(c[:, :3], radii=0.003, colors=[(230, 30, 30)]))
-                rec.log("world/contacts/forces", rr.Arrows3D(origins=c[:, :3], vectors=c[:, 7:10] * 0.01,
-                                                             colors=[(230, 30, 30)]))
+                points = np.ascontiguousarray(c[:, :3], dtype=np.float32)
+                rec.log("world/contacts", rr.Points3D.from_fields(positions=points))
+                rec.log("world/contacts/forces", rr.Arrows3D.from_fields(
+                    origins=points, vectors=np.asarray(c[:, 7:10] * 0.01, dtype=np.float32)))
                 self._logged_contacts = len(c)
             contact_force = float(np.linalg.norm(c[:, 7:10], axis=1).sum()) if len(c) else 0.0
         e = sim.energy()
