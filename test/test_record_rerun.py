@@ -140,15 +140,53 @@ def test_rrd_contacts_are_logged_when_they_change(tmp_path):
             counts.append(len(sim.contacts()))
             assert log.log_step()
     assert counts[0] == 0 and any(counts[3:7]) and counts[-1] == 0
-    points = {}
+    points, arrows, static = {}, {}, defaultdict(set)
     for c in _chunks(path):
-        if c.entity_path == "/world/contacts" and not c.is_static:
-            rb = c.to_record_batch()
+        rb = c.to_record_batch()
+        if c.is_static:
+            static[c.entity_path] |= set(rb.schema.names)
+        elif c.entity_path == "/world/contacts":
             for k, row in zip(rb.column("step").to_pylist(), rb.column("Points3D:positions").to_pylist()):
                 points[k] = None if row is None else len(row)   # an empty batch clears the view; None would not
+        elif c.entity_path == "/world/contacts/forces":
+            for k, row in zip(rb.column("step").to_pylist(), rb.column("Arrows3D:vectors").to_pylist()):
+                arrows[k] = None if row is None else len(row)
     want = [0] + [k for k in range(1, len(counts)) if counts[k] or counts[k - 1]]
     assert sorted(points) == want
     assert [points[k] for k in want] == [counts[k] for k in want]
+    assert sorted(arrows) == want and [arrows[k] for k in want] == [counts[k] for k in want]
+    assert {"Points3D:radii", "Points3D:colors"} <= static["/world/contacts"]
+    assert "Arrows3D:colors" in static["/world/contacts/forces"]
+
+
+def test_rrd_contacts_after_a_reset_are_the_new_runs(tmp_path):
+    """A reset rewinds the step timeline: the first frame after it logs the contacts (none
+    here), so the viewer does not show the run before the reset's contacts at the steps to
+    come (the latest value at or before a step)."""
+    sim = _small_sim()
+    path = tmp_path / "reset.rrd"
+    with RerunLogger(sim, mode="file", path=path) as log:
+        sim.set_collider_pose("ball", (0.5, 0.05, 0.125))
+        before = []
+        for k in range(6):
+            sim.step()
+            log.log_step()
+            before.append(len(sim.contacts()))
+        assert any(before)
+        sim.set_collider_pose("ball", (0.5, 0.05, 0.6))
+        sim.reset()
+        for k in range(6):
+            log.log_step()
+            sim.step()
+    rows = []                                              # (log order, step, contacts)
+    for c in _chunks(path):
+        if c.entity_path == "/world/contacts" and not c.is_static:
+            rb = c.to_record_batch()
+            rows += list(zip(rb.column("rerun.controls.RowId").to_pylist(), rb.column("step").to_pylist(),
+                             (len(r) for r in rb.column("Points3D:positions").to_pylist())))
+    rows.sort()
+    reset_at = next(i for i in range(1, len(rows)) if rows[i][1] < rows[i - 1][1])
+    assert rows[reset_at][1] == 0 and rows[reset_at][2] == 0              # the new run's first frame
 
 
 def test_logger_modes_and_errors(tmp_path):

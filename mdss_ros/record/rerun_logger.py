@@ -179,6 +179,10 @@ class RerunLogger:
         if self.closed or not self._due():
             return False
         rr, rec, sim = self.rr, self.rec, self.sim
+        if self._last_logged is not None and sim.step_count < self._last_logged:
+            # A reset rewinds the timelines: the contacts logged before it sit at the steps
+            # to come, so the first frame after it logs the contacts whatever they are.
+            self._logged_contacts = None
         self._last_logged = sim.step_count
         rec.set_time("step", sequence=int(sim.step_count))
         rec.set_time("sim_time", duration=float(sim.time))
@@ -186,8 +190,16 @@ class RerunLogger:
         if np.all(np.isfinite(x)):
             rec.log("world/body/surface", rr.Mesh3D.from_fields(vertex_positions=x))
         poses = np.asarray(sim.domain_poses(), dtype=np.float64).reshape(-1, 7)
-        if len(poses) and np.all(np.isfinite(poses)):
+        if len(poses):
+            # A domain whose pose is not finite gets zero-length arrows at the origin; the
+            # others are drawn (each arrow keeps its place, and so its colour and label).
+            bad = ~np.all(np.isfinite(poses), axis=1)
+            if bad.any():
+                poses = poses.copy()
+                poses[bad] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
             origins, vectors = domain_axes(poses, self._axis_length)
+            if bad.any():
+                vectors[np.repeat(bad, 3)] = 0.0
             rec.log("world/domains", rr.Arrows3D.from_fields(origins=origins, vectors=vectors))
         poses = dict(self._collider_poses)
         for name, c in (getattr(sim, "colliders", None) or {}).items():   # mdss_ros.contact colliders
@@ -237,9 +249,10 @@ class RerunLogger:
 
 
 def domain_axes(poses, length):
-    """Arrows (origins, vectors), each (3 D, 3), of the axes of D frames poses (D, 7) (x, y,
-    z, qx, qy, qz, qw; unit quaternions): domain k's x, y, z axes of the given length are
-    arrows 3 k, 3 k + 1, 3 k + 2 from its origin. The rotation's columns, vectorised."""
+    """Arrows (origins, vectors), each (3 D, 3) float32, of the axes of D frames poses (D, 7)
+    (x, y, z, qx, qy, qz, qw; the quaternions must be unit: they are not normalised here,
+    as every model's domain_poses gives them): domain k's x, y, z axes of the given length
+    are arrows 3 k, 3 k + 1, 3 k + 2 from its origin. The rotation's columns, vectorised."""
     x, y, z, w = poses[:, 3], poses[:, 4], poses[:, 5], poses[:, 6]
     R = np.empty((len(poses), 3, 3))              # R[k, :, j]: axis j of frame k
     R[:, 0, 0] = 1 - 2 * (y * y + z * z)
