@@ -160,9 +160,9 @@ def test_rrd_contacts_are_logged_when_they_change(tmp_path):
 
 
 def test_rrd_contacts_after_a_reset_are_the_new_runs(tmp_path):
-    """A reset rewinds the step timeline: the first frame after it logs the contacts (none
-    here), so the viewer does not show the run before the reset's contacts at the steps to
-    come (the latest value at or before a step)."""
+    """A reset rewinds the step timeline, and the viewer shows at a step the latest row at or
+    before it: up to the highest step logged before the reset, every frame after it logs its
+    contacts (none here) and collider poses, so no row of the run before shows through."""
     sim = _small_sim()
     path = tmp_path / "reset.rrd"
     with RerunLogger(sim, mode="file", path=path) as log:
@@ -174,19 +174,34 @@ def test_rrd_contacts_after_a_reset_are_the_new_runs(tmp_path):
             before.append(len(sim.contacts()))
         assert any(before)
         sim.set_collider_pose("ball", (0.5, 0.05, 0.6))
+        log.log_step()                                     # the pose the run after the reset keeps
         sim.reset()
-        for k in range(6):
+        sim.set_collider_pose("ball", (0.5, 0.05, 0.6))
+        for k in range(9):
             log.log_step()
             sim.step()
-    rows = []                                              # (log order, step, contacts)
-    for c in _chunks(path):
-        if c.entity_path == "/world/contacts" and not c.is_static:
-            rb = c.to_record_batch()
-            rows += list(zip(rb.column("rerun.controls.RowId").to_pylist(), rb.column("step").to_pylist(),
-                             (len(r) for r in rb.column("Points3D:positions").to_pylist())))
-    rows.sort()
-    reset_at = next(i for i in range(1, len(rows)) if rows[i][1] < rows[i - 1][1])
-    assert rows[reset_at][1] == 0 and rows[reset_at][2] == 0              # the new run's first frame
+
+    def rows_of(entity, column):                           # [(step, value)] in log order
+        rows = []
+        for c in _chunks(path):
+            if c.entity_path == entity and not c.is_static:
+                rb = c.to_record_batch()
+                rows += list(zip(rb.column("rerun.controls.RowId").to_pylist(), rb.column("step").to_pylist(),
+                                 rb.column(column).to_pylist()))
+        return [(k, v) for _, k, v in sorted(rows, key=lambda r: r[0])]
+
+    def shown(rows, step):                                 # the viewer's latest-at: highest step, then last logged
+        best = max((k, i) for i, (k, _) in enumerate(rows) if k <= step)
+        return rows[best[1]][1]
+
+    contacts = rows_of("/world/contacts", "Points3D:positions")
+    ball = rows_of("/world/colliders/ball", "Transform3D:translation")
+    reset_at = next(i for i in range(1, len(contacts)) if contacts[i][0] < contacts[i - 1][0])
+    after = contacts[reset_at:]
+    assert [k for k, _ in after] == list(range(7)) and not any(len(v) for _, v in after)
+    for step in range(9):                                  # the new run has no contacts, the ball up
+        assert len(shown(contacts, step)) == 0, step
+        np.testing.assert_allclose(np.ravel(shown(ball, step)), [0.5, 0.05, 0.6])
 
 
 def test_logger_modes_and_errors(tmp_path):

@@ -87,6 +87,8 @@ class RerunLogger:
         self._collider_poses = {}
         self._logged_pose = {}
         self._logged_contacts = None          # contacts in the last logged frame (None: none logged yet)
+        self._high = -1                       # the highest step logged so far
+        self._shadowed = -1                   # steps up to this one hold rows from before a reset
         if mode == "off":
             return
         import rerun as rr
@@ -179,11 +181,16 @@ class RerunLogger:
         if self.closed or not self._due():
             return False
         rr, rec, sim = self.rr, self.rec, self.sim
-        if self._last_logged is not None and sim.step_count < self._last_logged:
-            # A reset rewinds the timelines: the contacts logged before it sit at the steps
-            # to come, so the first frame after it logs the contacts whatever they are.
-            self._logged_contacts = None
-        self._last_logged = sim.step_count
+        k = sim.step_count
+        if self._last_logged is not None and k < self._last_logged:
+            # A reset rewinds the timelines, and the viewer shows at a step the latest row at
+            # or before it: the rows logged before the reset, up to the highest step, would
+            # show through every frame the new run leaves out. Up to that step every frame is
+            # logged in full.
+            self._shadowed = self._high
+        self._last_logged = k
+        self._high = max(self._high, k)
+        every = k <= self._shadowed
         rec.set_time("step", sequence=int(sim.step_count))
         rec.set_time("sim_time", duration=float(sim.time))
         x = np.asarray(sim.surface_positions(), dtype=np.float32)
@@ -206,7 +213,7 @@ class RerunLogger:
             if hasattr(c, "position") and hasattr(c, "orientation"):
                 poses[name] = (np.asarray(c.position, float), np.asarray(c.orientation, float))
         for name, (pos, quat) in poses.items():
-            if self._logged_pose.get(name) is None or not (np.array_equal(self._logged_pose[name][0], pos)
+            if every or self._logged_pose.get(name) is None or not (np.array_equal(self._logged_pose[name][0], pos)
                                                           and np.array_equal(self._logged_pose[name][1], quat)):
                 rec.log(f"world/colliders/{name}", rr.Transform3D(translation=pos, quaternion=quat))
                 self._logged_pose[name] = (pos.copy(), quat.copy())
@@ -217,9 +224,9 @@ class RerunLogger:
             c = np.asarray(contacts_of(), dtype=np.float64).reshape(-1, 10)
             c = c[np.all(np.isfinite(c), axis=1)]
             # The viewer shows the latest value: an empty frame after an empty frame changes
-            # nothing, and its two log calls cost 1 ms a frame on armadillo_class, which
-            # touches nothing.
-            if len(c) or self._logged_contacts != 0:
+            # nothing (unless rows from before a reset are in the way, above), and its two log
+            # calls cost 1 ms a frame on armadillo_class, which touches nothing.
+            if len(c) or self._logged_contacts != 0 or every:
                 points = np.ascontiguousarray(c[:, :3], dtype=np.float32)
                 rec.log("world/contacts", rr.Points3D.from_fields(positions=points))
                 rec.log("world/contacts/forces", rr.Arrows3D.from_fields(
