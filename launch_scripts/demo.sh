@@ -37,10 +37,23 @@ fi
 [ -n "$mcap" ] && echo "  $bag   rosbag2 folder (MCAP): every input applied and every output published"
 [ -s "$rrd" ] && echo "  $rrd   rerun log: surface mesh coloured by domain, frames, colliders, contacts, plots"
 echo "open them with"
-[ -s "$rrd" ] && echo "  rerun viewer:  $root/.venv/bin/rerun $rrd"
+if [ -s "$rrd" ]; then
+  if [ -n "${DISPLAY:-}${WAYLAND_DISPLAY:-}" ]; then
+    echo "  rerun viewer:  $root/.venv/bin/rerun $rrd"
+  else
+    # The native viewer needs a display; its web viewer runs headless.
+    echo "  rerun viewer:  $root/.venv/bin/rerun --serve-web $rrd   (no display here: open the address it"
+    echo "                 prints, http://127.0.0.1:9090 by default, in a browser; with a display: rerun $rrd)"
+  fi
+fi
 if [ -n "$mcap" ]; then
   echo "  Foxglove:      File > Open local file > $mcap"
-  echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
+  if command -v ros2 >/dev/null 2>&1; then
+    echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
+  else
+    echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play; needs a ROS 2 Jazzy install with ros2cli:"
+    echo "                 it has no pip wheel, so the venv has no ros2 command)"
+  fi
   echo "  replay:        $root/.venv/bin/mdss replay $bag --check   (headless, compares every output bit for bit)"
 fi
 exit "$rc"
