@@ -125,7 +125,8 @@ def test_rrd_domain_axes_are_the_simulators_frames(rrd):
 def test_rrd_contacts_are_logged_when_they_change(tmp_path):
     """Contacts are logged at the first frame, at every frame with contacts and at the first
     one without after them: the viewer shows the latest value, so an empty frame after an
-    empty one would change nothing. The ball is put into the beam, which sags under gravity, then lifted off."""
+    empty one would change nothing. The ball is put into the beam, which sags under
+    gravity, then lifted off."""
     sim = _small_sim()
     path = tmp_path / "contacts.rrd"
     counts = []
