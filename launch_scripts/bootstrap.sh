@@ -58,9 +58,9 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
   # numba compiles each kernel on first use; doing it here (cached in the venv) keeps that
   # cost out of the user's first scene, where it looked like a hang (mdss_ros/warmup.py).
   echo "mdss bootstrap: [3/4] compiling the numba kernels once into $venv/numba_cache (1-3 minutes on 2 cores; a line per model)" >&2
-  # Its progress lines go to the terminal (stderr: stdout carries the python path back):
-  # silent, this step looked like a hang.
-  env NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$venv/numba_cache}" "$venv/bin/python" -m mdss_ros.warmup >&2 \
+  # Its progress lines go to the terminal (stderr: stdout carries the python path back),
+  # unbuffered so a log shows them as they come: silent, this step looked like a hang.
+  env PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$venv/numba_cache}" "$venv/bin/python" -m mdss_ros.warmup >&2 \
     || die "compiling the numba kernels failed; see the message above"
   # /tf needs tf2_msgs, which no pip wheel has: build it from the rosidl generator wheels
   # when the machine has a compiler toolchain (launch_scripts/build_tf2_msgs.sh, ~20 s).

@@ -51,8 +51,8 @@ if [ -n "$mcap" ]; then
   if command -v ros2 >/dev/null 2>&1; then
     echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play)"
   else
-    echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play; needs a ROS 2 Jazzy install with ros2cli:"
-    echo "                 it has no pip wheel, so the venv has no ros2 command)"
+    echo "  ROS 2 Jazzy:   ros2 bag info $bag   (or ros2 bag play; needs a ROS 2 Jazzy install, ros-base or"
+    echo "                 desktop: ros2cli and rosbag2 have no pip wheels, so the venv has no ros2 command)"
   fi
   echo "  replay:        $root/.venv/bin/mdss replay $bag --check   (headless, compares every output bit for bit)"
 fi
