@@ -32,6 +32,25 @@ def matrix_from_quat(q):
     ])
 
 
+def matrices_from_quats(q):
+    """(n, 3, 3) rotations of quaternions q (n, 4) x y z w (each normalised here):
+    matrix_from_quat's formula over all rows at once (that one stays scalar: a collider's
+    pose reads it every step, where array slicing would cost more than it saves)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    x, y, z, w = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    R = np.empty((len(q), 3, 3))
+    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    R[:, 0, 1] = 2 * (x * y - z * w)
+    R[:, 0, 2] = 2 * (x * z + y * w)
+    R[:, 1, 0] = 2 * (x * y + z * w)
+    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    R[:, 1, 2] = 2 * (y * z - x * w)
+    R[:, 2, 0] = 2 * (x * z - y * w)
+    R[:, 2, 1] = 2 * (y * z + x * w)
+    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
 def skew(w):
     """(3, 3) cross-product matrix [w]x."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

@@ -17,3 +17,19 @@ def test_orthonormalise_is_the_polar_factor():
         assert np.abs(Y - U @ Vt).max() < 1e-14
         assert np.abs(Y.transpose(0, 2, 1) @ Y - np.eye(3)).max() < 1e-14
         assert np.all(np.linalg.det(Y) > 0)
+
+
+def test_matrices_from_quats_are_matrix_from_quat_row_by_row():
+    """The batched quaternion -> rotation against the scalar one, for random quaternions of
+    any length (both normalise) and both signs of w; the result is a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from mdss_ros.rotations import matrices_from_quats, matrix_from_quat
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(200, 4)) * rng.uniform(0.1, 10.0, size=(200, 1))
+    R = matrices_from_quats(q)
+    assert R.shape == (200, 3, 3)
+    for k in range(0, 200, 17):
+        np.testing.assert_allclose(R[k], matrix_from_quat(q[k]), rtol=0, atol=1e-15)   # norms round apart
+    np.testing.assert_allclose(R, Rotation.from_quat(q).as_matrix(), atol=1e-14)
+    assert np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max() < 1e-14

@@ -34,6 +34,7 @@ import math
 import numpy as np
 
 from ..errors import MdssError
+from ..rotations import matrices_from_quats
 
 MODES = ("off", "file", "spawn", "serve")
 
@@ -259,20 +260,9 @@ class RerunLogger:
 
 def domain_axes(poses, length):
     """Arrows (origins, vectors), each (3 D, 3) float32, of the axes of D frames poses (D, 7)
-    (x, y, z, qx, qy, qz, qw; the quaternions must be unit: they are not normalised here,
-    as every model's domain_poses gives them): domain k's x, y, z axes of the given length
-    are arrows 3 k, 3 k + 1, 3 k + 2 from its origin. The rotation's columns, vectorised."""
-    x, y, z, w = poses[:, 3], poses[:, 4], poses[:, 5], poses[:, 6]
-    R = np.empty((len(poses), 3, 3))              # R[k, :, j]: axis j of frame k
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 0, 1] = 2 * (x * y - z * w)
-    R[:, 0, 2] = 2 * (x * z + y * w)
-    R[:, 1, 0] = 2 * (x * y + z * w)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 1, 2] = 2 * (y * z - x * w)
-    R[:, 2, 0] = 2 * (x * z - y * w)
-    R[:, 2, 1] = 2 * (y * z + x * w)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    (x, y, z, qx, qy, qz, qw): domain k's x, y, z axes of the given length are arrows 3 k,
+    3 k + 1, 3 k + 2 from its origin, the columns of its rotation."""
+    R = matrices_from_quats(poses[:, 3:7])               # R[k, :, j]: axis j of frame k
     vectors = length * np.swapaxes(R, 1, 2).reshape(-1, 3)
     origins = np.repeat(poses[:, :3], 3, axis=0)
     return origins.astype(np.float32), vectors.astype(np.float32)
