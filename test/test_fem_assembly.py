@@ -120,12 +120,13 @@ def test_assembly_matches_dense_reference():
     np.testing.assert_allclose(m.pattern.matrix(K).toarray(), dense[np.ix_(free, free)], rtol=1e-12, atol=1e-9)
 
 
-@pytest.mark.parametrize("squeeze", [1.0, 0.5])
+@pytest.mark.parametrize("squeeze", [1.0, 0.5, -0.3])
 def test_neohookean_closed_form_stiffness_matches_dPdF_contraction(squeeze):
     """The element kernel forms a neo-Hookean stiffness from its closed form
     (elements.neohookean_stiffness); it must equal the contraction of the point kernel's
     dP/dF with the shape-function gradients, K_ab[i, k] = V sum_jl dPdF[3i+j, 3k+l] g_a[j]
-    g_b[l], also where the compression barrier acts (squeeze 0.5: J about 0.125 < 0.2)."""
+    g_b[l], also where the compression barrier acts (squeeze 0.5: J about 0.125 < 0.2) and
+    on inverted elements (squeeze -0.3: J about -0.027)."""
     from mdss_ros.fem.elements import element_forces
     from mdss_ros.fem.material_kernels import material_batch
     m = _model("neohookean", nu=0.45)
@@ -133,7 +134,8 @@ def test_neohookean_closed_form_stiffness_matches_dPdF_contraction(squeeze):
     _, _, Ke = element_forces(x, m.tets, m.geom, m.material)
     F = np.einsum("tai,taj->tij", x[m.tets], m.geom.grads)
     J = np.linalg.det(F)
-    assert (J < m.material.barrier_j).mean() > (0.9 if squeeze < 1 else -1) and (J > 0).all()
+    assert (J < m.material.barrier_j).mean() > (0.9 if squeeze < 1 else -1)
+    assert (J < 0).all() if squeeze < 0 else (J > 0).all()
     psi, P, C = np.empty(len(F)), np.empty_like(F), np.empty((len(F), 9, 9))
     material_batch(m.material.kind_id, m.material.params, F, psi, P, C, True, False)
     ref = np.einsum("t,tijkl,taj,tbl->taibk", m.geom.volume, C.reshape(-1, 3, 3, 3, 3),

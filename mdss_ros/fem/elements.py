@@ -22,7 +22,9 @@ from .material_kernels import KIND_NEOHOOKEAN, WORK_LEN, barrier_terms, material
 # numba's cache=True keys a cached kernel on its own file only: the kernels here inline
 # material_point_ws, so a change to material_kernels.py must come with an edit of this file
 # (or a cleared NUMBA_CACHE_DIR). Last material change: StVK's and corotated's scratch views made only
-# where used (session 20), same bits as before.
+# where used (session 20), same bits as before. neohookean_stiffness below writes out the
+# neo-Hookean and barrier tangent of material_kernels.py again, contracted: a change to
+# either must be made there too (test_fem_assembly.py compares the two).
 
 
 @dataclass(frozen=True)
