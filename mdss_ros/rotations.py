@@ -146,6 +146,19 @@ def orthonormalise_into(X, out, T):
                 out[i, j] = U[i, 0] * Vt[0, j] + U[i, 1] * Vt[1, j] + U[i, 2] * Vt[2, j]
 
 
+def rotation_angles(R):
+    """The angle (rad) of each rotation R (..., 3, 3): atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2).
+
+    Why not arccos((tr R - 1) / 2): near the identity it turns the round-off of the trace
+    (about 1e-16) into an angle of sqrt(2e-16) ~ 1.5e-8 rad, and a body moved whole read as
+    bent by 1e-6 degrees; the sine from the skew part keeps small angles to round-off."""
+    R = np.asarray(R, dtype=np.float64)
+    s = 0.5 * np.sqrt((R[..., 2, 1] - R[..., 1, 2]) ** 2 + (R[..., 0, 2] - R[..., 2, 0]) ** 2
+                      + (R[..., 1, 0] - R[..., 0, 1]) ** 2)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(s, c)
+
+
 def cross(a, b):
     """a x b for 3-vectors or stacks (..., 3), broadcasting like np.cross. np.cross checks
     and moves axes on every call (~20 us), which the reduced step pays dozens of times."""

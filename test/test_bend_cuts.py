@@ -186,4 +186,7 @@ def test_a_free_block_that_the_loads_move_whole_is_one_domain_without_warnings()
         warnings.simplefilter("error")
         _, labels, names, notes = _partition(scene)
     assert names == ["core"] and np.all(labels == 0)
-    assert any(n.startswith("no limbs;") and "bend it 0 deg" in n for n in notes), notes
+    note = next(n for n in notes if n.startswith("no limbs;"))
+    # Moved whole: no bend but round-off (rotations.rotation_angles keeps small angles; the
+    # arccos of the trace read 1e-6 degrees here once the stiffness's round-off changed).
+    assert float(note.split("bend it ")[1].split(" deg")[0]) < 1e-9, note

@@ -33,6 +33,7 @@ from scipy.sparse import csgraph
 from mdss_ros.errors import SceneError
 from mdss_ros.fem.elements import tet_geometry
 from mdss_ros.reduced.bend_cuts import element_rotations, limb_cuts
+from mdss_ros.rotations import rotation_angles
 
 AUTO_KEYS = {"core_scale", "min_limb", "limb_segments", "max_bend"}
 #: max_bend (degrees): the largest bend a limb's domain is left to carry in the scene's
@@ -264,7 +265,7 @@ def _bend_body(graph, tets, bends, T, max_bend, root_share=0.05):
     turn least (within root_share of the range of the largest turn over the cases: the
     pins of a clamped body, the calmest part of a free one)."""
     rot, volume, _ = bends
-    turn = np.arccos(np.clip(0.5 * (np.trace(rot, axis1=2, axis2=3) - 1.0), -1.0, 1.0)).max(axis=0)   # (m,)
+    turn = rotation_angles(rot).max(axis=0)                                      # (m,)
     calm = turn <= turn.min() + root_share * (turn.max() - turn.min())
     root = np.unique(tets[calm])
     s = csgraph.dijkstra(graph, directed=False, indices=root, min_only=True)

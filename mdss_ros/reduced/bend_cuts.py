@@ -37,6 +37,7 @@ import scipy.sparse as sp
 from ..fem.force_model import FEMForceModel
 from ..fem.statics import ramped_equilibrium
 from ..linear_solver import SparseSolver
+from ..rotations import rotation_angles
 from .residual_compliance import RestStatics
 
 
@@ -140,8 +141,7 @@ def limb_bend_profile(rot, volume, s_tet, in_limb, width, reach):
     edges, nb = edges[has], len(has)
     mean = polar_rotations(acc[:, has].reshape(-1, 3, 3)).reshape(c, nb, 3, 3)
     rel = np.einsum("cbji,cdjk->cbdik", mean, mean)                      # R_b^T R_d
-    cos = np.clip(0.5 * (np.trace(rel, axis1=3, axis2=4) - 1.0), -1.0, 1.0)
-    return edges, np.arccos(cos)
+    return edges, rotation_angles(rel)
 
 
 def _grow(bend, start, limit, min_bands):

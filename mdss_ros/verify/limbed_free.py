@@ -39,6 +39,7 @@ import numpy as np
 
 from ..accuracy import ground_truth, play
 from ..precompute import PrecomputeCache
+from ..rotations import rotation_angles
 from ..scene import load_scene
 from ..simulator import Simulator
 from ..timeline import TimelinePlayer
@@ -78,7 +79,7 @@ def rotation_of(X, x, ids):
 
 
 def angle_deg(R):
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.degrees(rotation_angles(R)))
 
 
 def balanced_scales(axes):

@@ -72,6 +72,7 @@ from pathlib import Path
 import numpy as np
 
 from ..precompute import PrecomputeCache
+from ..rotations import rotation_angles
 from ..scene import load_scene
 from .peers import (MUJOCO_VERSION, compare_to, match_vertices, median_ms_from_rest, mujoco_module,
                     mujoco_settle, mujoco_step_timer, retime_round_robin)
@@ -179,7 +180,7 @@ def handle_rotation_deg(X, x, ids):
     U, _, Vt = np.linalg.svd(P.T @ Q)
     d = np.sign(np.linalg.det(U @ Vt))
     R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(np.degrees(rotation_angles(R)))
 
 
 def is_limbed_scene(scene):

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..accuracy import surface_error  # noqa: F401  (the reports import it from here)
 from ..errors import ReportError  # noqa: F401  (the reports import it from here)
+from ..rotations import rotation_angles
 
 
 # Material of every beam study unless a study says otherwise: a soft StVK rubber
@@ -249,7 +250,7 @@ def tip_rotation(X_tip, x_tip):
     if np.linalg.det(U @ Vt) < 0:
         U[:, -1] *= -1
     R = U @ Vt
-    total = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    total = np.degrees(rotation_angles(R))
     bend = np.degrees(np.arctan2(-R[2, 0], R[0, 0]))
     return {"total_deg": float(total), "bending_deg": float(bend)}
 
