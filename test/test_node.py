@@ -236,7 +236,10 @@ def test_sphere_pressed_into_block_reports_the_reaction(tmp_path):
     """A collider pose from another process presses a sphere 1 cm into the top of the beam;
     the collider's wrench topic reports an upward reaction and contacts are published.
     (One unstamped pose, applied at the next step and held: a wall-clock pose stream made
-    the outcome depend on machine load.)"""
+    the outcome depend on machine load. The pose is acknowledged before the unpause: it
+    reaches the node on its inputs thread and the unpause on its main thread, so the
+    unpaused node could step past t = 0.5 s before it had the pose; once in a fresh-clone
+    CI run the wrench read 0 there, and the test passed on three reruns.)"""
     pose = {"header": {"frame_id": "world"},
             "pose": {"position": {"x": 0.5, "y": 0.05, "z": 0.14}, "orientation": {"w": 1.0}}}
     with Launch(tmp_path) as launch:
@@ -244,7 +247,7 @@ def test_sphere_pressed_into_block_reports_the_reaction(tmp_path):
         probe = launch.probe()
         probe.sub("/mdss/colliders/ball/wrench", "geometry_msgs/msg/WrenchStamped")
         probe.sub("/mdss/contacts", CLOUD)
-        probe.pub("/mdss/colliders/ball/pose", "geometry_msgs/msg/PoseStamped", pose)
+        probe.pub("/mdss/colliders/ball/pose", "geometry_msgs/msg/PoseStamped", pose, ack=True)
         probe.call("/mdss/unpause_physics", EMPTY)
         wrenches = probe.wait("/mdss/colliders/ball/wrench", where={"stamp_ge": 0.5}, timeout=60)
         contacts = probe.wait("/mdss/contacts", timeout=20)
