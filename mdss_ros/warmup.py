@@ -9,7 +9,8 @@ the user expects to wait and is never paid again.
 
 It steps three tiny models through the code paths a scene uses: a full-space model, a
 reduced multi-domain model with cubature and a meshless model, each pressed by a sphere
-collider, with the stability guard on, then queries a mesh collider's grid. Nothing is cached but the kernels (the precompute cache is off).
+collider, with the stability guard on (and the reduced one once more without the
+collider), then queries a mesh collider's grid. Nothing is cached but the kernels (the precompute cache is off).
 
     python -m mdss_ros.warmup          # prints one line per model and the time taken
 """
@@ -53,6 +54,12 @@ def warm(kinds=("full", "reduced", "meshless"), say=print):
         finally:
             threads.SERIAL_BELOW = saved
         sim.collider_wrench("ball")
+        if kind == "reduced":
+            # A step without contact takes the compiled linear step (reduced/linear_step.py),
+            # which alone compiles for about 9 s.
+            alone = Simulator("cantilever", overrides=dict(_scene_overrides(kind), colliders={}),
+                             cache=PrecomputeCache(enabled=False))
+            alone.step()
         times[kind] = time.perf_counter() - t0
         say(f"  {kind} model kernels ready ({times[kind]:.1f} s)")
     # A mesh collider's grid query (contact/mesh_sdf.py), with and without normals: no

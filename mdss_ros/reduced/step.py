@@ -19,6 +19,8 @@ from ..fem.backward_euler import contact_forces, contact_stats
 from ..loads import sparse_loads
 from ..rotations import cross, exp_so3
 from ..step_options import StepOptions
+from .frames import FrameState
+from .linear_step import linear_step_kernel
 from .unified_system import StepSystem
 
 
@@ -64,19 +66,16 @@ class Step:
                          alpha=self.alpha if alpha is None else float(alpha))
 
     def _step(self, f_ext, gravity, contact, terms):
+        if (not contact and terms.newton_iterations == 1 and not terms.implicit and not self.F
+                and self.scheme != "two_step" and not self.unsymmetric):
+            # A subspace-only body's linearly implicit step, in one compiled call; None
+            # where its system is not positive definite (solved below by LU).
+            stats = self._linear_step(f_ext, gravity, terms)
+            if stats is not None:
+                return stats
         t0 = time.perf_counter()
         dt = terms.dt
-        # Body-frame inertia (D, 3, 3) at the step start, for the mass blocks and the prediction.
-        inertia = self._inertia_of(self.q) if len(self.layout.movers) else None
-        gm = self._global_motion(inertia)
-        if gm is not None:
-            C, V, W, L = gm
-            # Torque of the loads about the mass centre; uniform gravity has none.
-            loaded, f_loaded = sparse_loads(f_ext)
-            # Without loads (gravity alone: the incline, a body on a floor) there is no
-            # torque to take, and positions_of's surface pass is skipped.
-            tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0) if loaded.size else np.zeros(3)
-            gm = (C, V, W, (L + dt * tau) / (1.0 + dt * terms.alpha))
+        inertia, gm = self._step_motion(f_ext, terms)
         self._dW = 0.0
         self._indefinite = False
         # The applied loads as generalised forces at the step start (no gravity: it is a
@@ -209,21 +208,98 @@ class Step:
             else:
                 contact_work = friction.work(lam, Q)
         self.last = {"elastic": energy}
-        total = 1e3 * (time.perf_counter() - t0)
-        residual_ratio = r_last / r0 if r0 > 0 else 0.0
-        external_work = dt * float(F_app @ self.get_Q())
+        self._report(t0, iterations, r_last / r0 if r0 > 0 else 0.0, dt * float(F_app @ self.get_Q()), contact_work,
+                     contact_s, cuts, damped, stalled)
+        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
+            self.stats.update(contact_stats(self._contact_info))
+        self.timing = {}
+        return self.stats
+
+    def _report(self, t0, iterations, residual_ratio, external_work, contact_work=0.0, contact_s=0.0, cuts=0,
+                damped=0, stalled=""):
+        """self.stats of the step that started at t0 (perf_counter s), from its phase times
+        (self.timing) and the values given."""
         self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
                       "contact_work": contact_work,
                       "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
                       "domain_ms": self.timing["domain_ms"],
                       "coupling_ms": self.timing["coupling_ms"], "factor_ms": self.timing.get("factor_ms", 0.0),
-                      "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": total,
+                      "solve_ms": self.timing.get("solve_ms", 0.0), "model_ms": 1e3 * (time.perf_counter() - t0),
                       "angular_momentum_correction": self._dW,
                       "line_search_cuts": cuts, "newton_damped": int(damped), "newton_stalled": stalled,
                       "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
-        if contact_rows is not None:          # candidates and rows the LCP solved for (unilateral.py)
-            self.stats.update(contact_stats(self._contact_info))
+
+    def _step_motion(self, f_ext, terms):
+        """(inertia, gm) of a step from the current state: the body-frame inertia (D, 3, 3)
+        at q for the mass blocks and the prediction (None without movable frames), and a
+        free body's mean rigid motion (C, V, W, L') with the angular momentum it must have
+        after the step, L' = (L + dt tau) / (1 + dt alpha), tau the loads' torque about the
+        mass centre (None for a body held by pins)."""
+        inertia = self._inertia_of(self.q) if len(self.layout.movers) else None
+        gm = self._global_motion(inertia)
+        if gm is None:
+            return inertia, None
+        C, V, W, L = gm
+        # Torque of the loads about the mass centre; uniform gravity has none.
+        loaded, f_loaded = sparse_loads(f_ext)
+        # Without loads (gravity alone: the incline, a body on a floor) there is no
+        # torque to take, and positions_of's surface pass is skipped.
+        tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0) if loaded.size else np.zeros(3)
+        return inertia, (C, V, W, (L + terms.dt * tau) / (1.0 + terms.dt * terms.alpha))
+
+    def _linear_step(self, f_ext, gravity, terms):
+        """_step for a subspace-only body with one Newton iteration, no contact and explicit
+        fictitious forces: linear_step.linear_step_kernel on the start evaluation, the same
+        operations as _step's, in one call (a free body's mean motion before it and its
+        angular momentum balance after it, as _step does them). Returns the stats, or None
+        (nothing changed, the start evaluation kept) when the unified matrix is not
+        positive definite. The stats' factor_ms is the kernel's time (the system, its
+        factor and solve, the state update) and solve_ms 0."""
+        t0 = time.perf_counter()
+        dt = terms.dt
+        L, fr, bs = self.layout, self.frames, self.block_solver
+        _, gm = self._step_motion(f_ext, terms)
+        if gm is None:
+            C = V = W = np.zeros(3)
+            Rc = np.eye(3)
+        else:
+            C, V, W = (np.asarray(a, dtype=np.float64) for a in gm[:3])
+            Rc = exp_so3(-2.0 * dt * W)            # as _coriolis_rotate
+        F_app = self._applied(f_ext, fr, self.q)
+        (G, K_ss, _, _, energy, _, _), timing = self._start_evaluation()
+        A = self._pattern_buffer()
+        if bs.L is None:
+            bs.L = np.zeros((self.S, self.S))      # BlockCholesky.factor's buffer, made on first use
+        q, qd, inertia, Q = np.empty_like(self.q), np.empty_like(self.q), np.empty((L.D, 3, 3)), np.empty(self.S)
+        new = FrameState(np.empty_like(fr.c), np.empty_like(fr.R), np.empty_like(fr.v), np.empty_like(fr.w),
+                         fr.w.copy())
+        g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
+        t1 = time.perf_counter()
+        failed, r0 = linear_step_kernel(
+            self.q, self.qd, fr.c, fr.R, fr.v, fr.w, fr.w_prev, G, K_ss, F_app, g, gravity is not None,
+            gm is not None, C, V, W, Rc, dt, terms.alpha, self.beta, L.r, L.movable, L.q_index, L.modal_rows, L.movers, L.lin_index, L.ang_index,
+            L.total_mass, L.mass_moment, L.inertia0, L.B1, L.B2, L.W, L.s, A, self._A_blocks, self.sub_offsets,
+            bs.perm, bs.po, bs.later_ptr, bs.later_idx, bs.L, q, qd, new.c, new.R, new.v, new.w, inertia, Q)
+        t2 = time.perf_counter()
+        if failed >= 0:
+            return None
+        self._start_eval = None                   # taken, as _step's _start_evaluation(take=True)
+        self._dW = 0.0
+        self._indefinite = False
+        self._factor, self._resolve = bs, bs.solve
+        if len(L.movers):
+            # _predict's _inertia_of(q): the next step starts from this q.
+            inertia.flags.writeable = False
+            self._inertia_kept = (q.copy(), inertia)
+        if gm is not None:
+            self._rebalance(new, q, self.x_full, self.v_full, inertia, gm[3])
+        self.q, self.qd, self.frames = q, qd, new
+        self.contact = None
+        self._dent = np.zeros_like(self._dent)
+        self.last = {"elastic": energy}
+        self.timing = dict(timing, factor_ms=1e3 * (t2 - t1), solve_ms=0.0)
+        self._report(t0, 1, r0 / r0 if r0 > 0 else 0.0, dt * float(F_app @ self.get_Q()))
         self.timing = {}
         return self.stats
 
@@ -312,19 +388,25 @@ class Step:
         else:
             x_full = x0
         if gm is not None and gm[3] is not None:
-            # Carrying the state by exp(dt W) also turns its angular momentum by that
-            # rotation; where L is not parallel to W (products of inertia) this is a
-            # spurious precession, first order in dt. Restore the balance of angular
-            # momentum, L' = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW
-            # about the mass centre (linear momentum unchanged).
-            C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full, inertia)
-            dW = np.linalg.solve(I1, gm[3] - L1)
-            self._dW = float(np.linalg.norm(dW))
-            frames.v[mv] += cross(dW, frames.c[mv] - C1)
-            frames.w[mv] += dW
-            if self.F:
-                v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
+            v_full = self._rebalance(frames, q, x_full, v_full, inertia, gm[3])
         return q, qd, frames, x_full, v_full
+
+    def _rebalance(self, frames, q, x_full, v_full, inertia, L_target):
+        """Carrying the state by exp(dt W) also turns its angular momentum by that
+        rotation; where L is not parallel to W (products of inertia) this is a spurious
+        precession, first order in dt. Restore the balance of angular momentum, L' =
+        L_target = (L + dt tau_ext) / (1 + dt alpha), with a rigid rotation dW about the
+        mass centre (linear momentum unchanged): frames (changed in place) at q with the
+        body-frame inertia (D, 3, 3), full-space x_full, v_full. Returns v_full."""
+        mv = self.layout.movers
+        C1, _, L1, I1 = self._momentum(frames, q, x_full, v_full, inertia)
+        dW = np.linalg.solve(I1, L_target - L1)
+        self._dW = float(np.linalg.norm(dW))
+        frames.v[mv] += cross(dW, frames.c[mv] - C1)
+        frames.w[mv] += dW
+        if self.F:
+            v_full = np.where(self.is_full_vertex[:, None], v_full + cross(dW, x_full - C1), v_full)
+        return v_full
 
     #: (q copy, layout.inertia(q)) of the last _inertia_of call.
     _inertia_kept = None

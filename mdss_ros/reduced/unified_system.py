@@ -64,6 +64,23 @@ def add_mass(A, scale, modal, lin_index, mass, ang_index, inertia):
                 A[ang_index[m, i], ang_index[m, j]] += scale * inertia[m, i, j]
 
 
+@njit(cache=True)
+def mass_matvec_kernel(x, modal, lin_index, mass, ang_index, inertia, out):
+    """out = Mgen x on the subspace rows: x, out (S,); modal (n_modal,), lin_index,
+    ang_index (M, 3), mass (M,), inertia (M, 3, 3). Each angular row sums its three
+    products in order (I_i0 x_0 + I_i1 x_1) + I_i2 x_2; numpy's einsum over the stacked
+    inertia added them as (I_i0 x_0 + I_i2 x_2) + I_i1 x_1, an order the compiled step
+    (linear_step.py) could only copy by accident, so both use this kernel."""
+    for i in range(modal.shape[0]):
+        out[modal[i]] = x[modal[i]]
+    for m in range(lin_index.shape[0]):
+        for k in range(3):
+            out[lin_index[m, k]] = mass[m] * x[lin_index[m, k]]
+        x0, x1, x2 = x[ang_index[m, 0]], x[ang_index[m, 1]], x[ang_index[m, 2]]
+        for i in range(3):
+            out[ang_index[m, i]] = inertia[m, i, 0] * x0 + inertia[m, i, 1] * x1 + inertia[m, i, 2] * x2
+
+
 @dataclass(frozen=True)
 class SubspaceMass:
     """Mgen on the S subspace rows as its structure: 1 on the modal rows (n_modal,), m_k I3
@@ -79,10 +96,9 @@ class SubspaceMass:
 
     def matvec(self, x):
         """Mgen x on the subspace rows: x (S,) -> (S,)."""
-        out = np.empty_like(x)
-        out[self.modal] = x[self.modal]
-        out[self.lin_index] = self.mass[:, None] * x[self.lin_index]
-        out[self.ang_index] = np.einsum("mij,mj->mi", self.inertia, x[self.ang_index])
+        out = np.empty(len(x))
+        mass_matvec_kernel(np.ascontiguousarray(x, dtype=np.float64), self.modal, self.lin_index, self.mass,
+                           self.ang_index, self.inertia, out)
         return out
 
     def add_to(self, A, scale):
