@@ -278,9 +278,10 @@ class Step:
         t1 = time.perf_counter()
         failed, r0 = linear_step_kernel(
             self.q, self.qd, fr.c, fr.R, fr.v, fr.w, fr.w_prev, G, K_ss, F_app, g, gravity is not None,
-            gm is not None, C, V, W, Rc, dt, terms.alpha, self.beta, L.r, L.movable, L.q_index, L.modal_rows, L.movers, L.lin_index, L.ang_index,
-            L.total_mass, L.mass_moment, L.inertia0, L.B1, L.B2, L.W, L.s, A, self._A_blocks, self.sub_offsets,
-            bs.perm, bs.po, bs.later_ptr, bs.later_idx, bs.L, q, qd, new.c, new.R, new.v, new.w, inertia, Q)
+            gm is not None, C, V, W, Rc, dt, terms.alpha, self.beta, L.r, L.movable, L.q_index, L.modal_rows,
+            L.movers, L.lin_index, L.ang_index, L.total_mass, L.mass_moment, L.inertia0, L.B1, L.B2, L.W, L.s, A,
+            self._A_blocks, self.sub_offsets, bs.perm, bs.po, bs.later_ptr, bs.later_idx, bs.L,
+            q, qd, new.c, new.R, new.v, new.w, inertia, Q)
         t2 = time.perf_counter()
         if failed >= 0:
             return None
