@@ -5,7 +5,7 @@ modal subspace, all stepped by one unified implicit solve.
 The method's parts live in modules named after them, mixed into ReducedModel:
 
     step.py                the step: A Q' = b, Newton iterations, the state update
-                           (linear_step.py: the step without contact, one compiled call)
+                           (linear_step.py: a one-iteration step in compiled calls)
     generalised_forces.py  G and K of domains (cubature) and coupling elements; loads
     unified_system.py      Mgen, A = Mgen + dt Dgen + dt^2 K, its solve; the two-step foil
     fictitious.py          fictitious forces; the free body's mean rigid motion

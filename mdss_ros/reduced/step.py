@@ -20,7 +20,7 @@ from ..loads import sparse_loads
 from ..rotations import cross, exp_so3
 from ..step_options import StepOptions
 from .frames import FrameState
-from .linear_step import linear_step_kernel
+from .linear_step import linear_predict_kernel, linear_solve_kernel, linear_step_kernel
 from .unified_system import StepSystem
 
 
@@ -66,11 +66,11 @@ class Step:
                          alpha=self.alpha if alpha is None else float(alpha))
 
     def _step(self, f_ext, gravity, contact, terms):
-        if (not contact and terms.newton_iterations == 1 and not terms.implicit and not self.F
-                and self.scheme != "two_step" and not self.unsymmetric):
-            # A subspace-only body's linearly implicit step, in one compiled call; None
-            # where its system is not positive definite (solved below by LU).
-            stats = self._linear_step(f_ext, gravity, terms)
+        if (terms.newton_iterations == 1 and not terms.implicit and not self.F and self.scheme != "two_step"
+                and not self.unsymmetric):
+            # A subspace-only body's linearly implicit step in compiled calls (one without
+            # contact); None where its system is not positive definite (solved below by LU).
+            stats = self._linear_step(f_ext, gravity, contact, terms)
             if stats is not None:
                 return stats
         t0 = time.perf_counter()
@@ -168,45 +168,14 @@ class Step:
                 r_last = float(np.linalg.norm(r_c))
                 if r_last <= self.tolerance * max(r0, 1e-300):
                     break
-        if gm is not None and contact_rows is not None and self._contact_rows_seen is contact_rows \
-                and np.any(self._contact_lam > 0.0):
-            # In contact the solve's own angular momentum stands: the rebalance below would
-            # have to know the contact forces' torque over the step, and one taken at the
-            # step start either undid the floor's torque (a caterpillar lifting its head was
-            # turned by up to 0.3 rad/s a step and created energy) or, at a static dt, turned
-            # a resting block into the floor.
+        if gm is not None and self._contact_holds(contact_rows):
             gm = gm[:3] + (None,)
             base = base[:3] + (gm,) + base[4:]
         q, qd, frames, x_full, v_full = self._predict(Q, base, dt)
         self.q, self.qd, self.frames = q, qd, frames
         if self.F:             # before the contact outputs, which read full-space positions
             self.x_full, self.v_full = x_full, v_full
-        self.contact = None
-        contact_work = 0.0
-        self._dent = np.zeros_like(self._dent)
-        if contact_rows is not None:
-            verts, _, _, normals, which, friction = contact_rows
-            lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
-            if self._contact_compliance is not None:
-                self._dent = self._contact_compliance.dent(lam.ravel())
-            lam_n = lam if lam.ndim == 1 else lam[:, 0]
-            pts = self._contact_points(contact, verts)
-            depth = np.zeros(len(verts))
-            active = lam_n > 0
-            for c_idx, col in enumerate(contact["colliders"]):
-                sel = np.flatnonzero(active & (which == c_idx))
-                if sel.size:
-                    depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
-            w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
-            self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction.tangents,
-                                          pts, depth, w, dt)
-            # Work of the contact forces over the step in the step's own terms (the guard's
-            # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
-            # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
-            if friction is None:
-                contact_work = float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
-            else:
-                contact_work = friction.work(lam, Q)
+        contact_work = self._contact_outputs(contact, contact_rows, Q, dt)
         self.last = {"elastic": energy}
         self._report(t0, iterations, r_last / r0 if r0 > 0 else 0.0, dt * float(F_app @ self.get_Q()), contact_work,
                      contact_s, cuts, damped, stalled)
@@ -230,6 +199,46 @@ class Step:
                       "indefinite_system": self._indefinite,
                       "domains": len(self.subspace) + len(self.full)}
 
+    def _contact_holds(self, contact_rows):
+        """Whether this step's contact solve left a force on the body. A free body in
+        contact keeps the solve's own angular momentum: the rebalance (_rebalance) would
+        have to know the contact forces' torque over the step, and one taken at the step
+        start either undid the floor's torque (a caterpillar lifting its head was turned by
+        up to 0.3 rad/s a step and created energy) or, at a static dt, turned a resting
+        block into the floor."""
+        return (contact_rows is not None and self._contact_rows_seen is contact_rows
+                and bool(np.any(self._contact_lam > 0.0)))
+
+    def _contact_outputs(self, contact, contact_rows, Q, dt):
+        """The step's contact record (self.contact) and the residual compliance's dent
+        (self._dent) at the new state, from the contact solve's forces; returns the work of
+        the contact forces over the step (0.0 without contact rows)."""
+        self.contact = None
+        self._dent = np.zeros_like(self._dent)
+        if contact_rows is None:
+            return 0.0
+        verts, _, _, normals, which, friction = contact_rows
+        lam = self._contact_lam if self._contact_rows_seen is contact_rows else np.zeros(len(verts))
+        if self._contact_compliance is not None:
+            self._dent = self._contact_compliance.dent(lam.ravel())
+        lam_n = lam if lam.ndim == 1 else lam[:, 0]
+        pts = self._contact_points(contact, verts)
+        depth = np.zeros(len(verts))
+        active = lam_n > 0
+        for c_idx, col in enumerate(contact["colliders"]):       # a few colliders, vectorised each
+            sel = np.flatnonzero(active & (which == c_idx))
+            if sel.size:
+                depth[sel] = np.maximum(-col.signed_distance(pts[sel])[0], 0.0)
+        w = self._contact_info.get("w") if self._contact_rows_seen is contact_rows else None
+        self.contact = contact_forces(verts, normals, which, lam, None if friction is None else friction.tangents,
+                                      pts, depth, w, dt)
+        # Work of the contact forces over the step in the step's own terms (the guard's
+        # energy ledger): the generalised force J^T n lam times dt Q', that is lam . C Q'
+        # (C holds dt), plus the rigid velocity a co-rotating step folds into phi.
+        if friction is None:
+            return float(lam @ (contact_rows[1] @ Q + self._contact_rigid))
+        return friction.work(lam, Q)
+
     def _step_motion(self, f_ext, terms):
         """(inertia, gm) of a step from the current state: the body-frame inertia (D, 3, 3)
         at q for the mass blocks and the prediction (None without movable frames), and a
@@ -248,14 +257,16 @@ class Step:
         tau = cross(self.positions_of(loaded) - C, f_loaded).sum(0) if loaded.size else np.zeros(3)
         return inertia, (C, V, W, (L + terms.dt * tau) / (1.0 + terms.dt * terms.alpha))
 
-    def _linear_step(self, f_ext, gravity, terms):
-        """_step for a subspace-only body with one Newton iteration, no contact and explicit
-        fictitious forces: linear_step.linear_step_kernel on the start evaluation, the same
-        operations as _step's, in one call (a free body's mean motion before it and its
-        angular momentum balance after it, as _step does them). Returns the stats, or None
-        (nothing changed, the start evaluation kept) when the unified matrix is not
-        positive definite. The stats' factor_ms is the kernel's time (the system, its
-        factor and solve, the state update) and solve_ms 0."""
+    def _linear_step(self, f_ext, gravity, contact, terms):
+        """_step for a subspace-only body with one Newton iteration and explicit fictitious
+        forces, the same operations in compiled calls (linear_step.py): the system and its
+        solve (linear_solve_kernel), the contact rows and their correction of the solve as
+        in _step, then the new state (linear_predict_kernel); without contact both kernels
+        in one call (linear_step_kernel). A free body's mean motion is taken before them and
+        its angular momentum balance after them, as _step does. Returns the stats, or None
+        (nothing of the state changed, the start evaluation kept) when the unified matrix
+        is not positive definite. The stats' factor_ms is the kernels' time (the system,
+        its factor and solve, the state update) and solve_ms 0."""
         t0 = time.perf_counter()
         dt = terms.dt
         L, fr, bs = self.layout, self.frames, self.block_solver
@@ -268,39 +279,67 @@ class Step:
             Rc = exp_so3(-2.0 * dt * W)            # as _coriolis_rotate
         F_app = self._applied(f_ext, fr, self.q)
         (G, K_ss, _, _, energy, _, _), timing = self._start_evaluation()
-        A = self._pattern_buffer()
         if bs.L is None:
             bs.L = np.zeros((self.S, self.S))      # BlockCholesky.factor's buffer, made on first use
-        q, qd, inertia, Q = np.empty_like(self.q), np.empty_like(self.q), np.empty((L.D, 3, 3)), np.empty(self.S)
+        system = (self.q, self.qd, fr.c, fr.R, fr.v, fr.w, fr.w_prev, G, K_ss, F_app,
+                  np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64), gravity is not None,
+                  gm is not None, C, V, W, Rc, dt, terms.alpha, self.beta, L.r, L.movable, L.q_index, L.modal_rows,
+                  L.movers, L.lin_index, L.ang_index, L.total_mass, L.mass_moment, L.inertia0, L.B1, L.B2, L.W,
+                  L.s, self._pattern_buffer(), self._A_blocks, self.sub_offsets, bs.perm, bs.po, bs.later_ptr,
+                  bs.later_idx, bs.L)
+        q, qd, inertia, Q, r = (np.empty_like(self.q), np.empty_like(self.q), np.empty((L.D, 3, 3)),
+                                np.empty(self.S), np.empty(self.S))
         new = FrameState(np.empty_like(fr.c), np.empty_like(fr.R), np.empty_like(fr.v), np.empty_like(fr.w),
                          fr.w.copy())
-        g = np.zeros(3) if gravity is None else np.asarray(gravity, dtype=np.float64)
+        state_out = (q, qd, new.c, new.R, new.v, new.w, inertia)
+        contact_rows, contact_s = None, 0.0
         t1 = time.perf_counter()
-        failed, r0 = linear_step_kernel(
-            self.q, self.qd, fr.c, fr.R, fr.v, fr.w, fr.w_prev, G, K_ss, F_app, g, gravity is not None,
-            gm is not None, C, V, W, Rc, dt, terms.alpha, self.beta, L.r, L.movable, L.q_index, L.modal_rows,
-            L.movers, L.lin_index, L.ang_index, L.total_mass, L.mass_moment, L.inertia0, L.B1, L.B2, L.W, L.s, A,
-            self._A_blocks, self.sub_offsets, bs.perm, bs.po, bs.later_ptr, bs.later_idx, bs.L,
-            q, qd, new.c, new.R, new.v, new.w, inertia, Q)
-        t2 = time.perf_counter()
+        if not contact:
+            failed = linear_step_kernel(*system, *state_out, Q, r)
+            kernel_s = time.perf_counter() - t1
+        else:
+            dQ, I_start = np.empty(self.S), np.empty((L.D, 3, 3))
+            failed = linear_solve_kernel(*system, dQ, r, I_start)
+            kernel_s = time.perf_counter() - t1
         if failed >= 0:
             return None
         self._start_eval = None                   # taken, as _step's _start_evaluation(take=True)
         self._dW = 0.0
         self._indefinite = False
         self._factor, self._resolve = bs, bs.solve
+        r0 = r_last = float(np.linalg.norm(r))
+        if contact:
+            t_c = time.perf_counter()
+            contact_rows = self._contact_rows(contact, gm, dt)
+            Q0 = np.zeros(self.S)
+            if contact_rows is not None:
+                dQ, lam = self._contact_solve(contact_rows, Q0, dQ)
+                # A body at rest pushed only by a collider has r0 = 0: measure the
+                # tolerance against the contact forces' size instead (as _step).
+                r0 = max(r0, float(np.linalg.norm(self._contact_force(contact_rows, lam))))
+            Q = Q0 + 1.0 * dQ
+            if gm is not None and self._contact_holds(contact_rows):
+                gm = gm[:3] + (None,)
+            t2 = time.perf_counter()
+            contact_s = t2 - t_c
+            linear_predict_kernel(self.q, fr.c, fr.R, fr.v, fr.w, Q, dt, gm is not None, C, V, W, L.r, L.movable,
+                                  L.q_index, L.movers, L.lin_index, L.ang_index, L.inertia0, L.B1, L.B2, I_start,
+                                  *state_out)
+            kernel_s += time.perf_counter() - t2
         if len(L.movers):
             # _predict's _inertia_of(q): the next step starts from this q.
             inertia.flags.writeable = False
             self._inertia_kept = (q.copy(), inertia)
-        if gm is not None:
+        if gm is not None and gm[3] is not None:
             self._rebalance(new, q, self.x_full, self.v_full, inertia, gm[3])
         self.q, self.qd, self.frames = q, qd, new
-        self.contact = None
-        self._dent = np.zeros_like(self._dent)
+        contact_work = self._contact_outputs(contact, contact_rows, Q, dt)
         self.last = {"elastic": energy}
-        self.timing = dict(timing, factor_ms=1e3 * (t2 - t1), solve_ms=0.0)
-        self._report(t0, 1, r0 / r0 if r0 > 0 else 0.0, dt * float(F_app @ self.get_Q()))
+        self.timing = dict(timing, factor_ms=1e3 * kernel_s, solve_ms=0.0)
+        self._report(t0, 1, r_last / r0 if r0 > 0 else 0.0, dt * float(F_app @ self.get_Q()), contact_work,
+                     contact_s)
+        if contact_rows is not None:
+            self.stats.update(contact_stats(self._contact_info))
         self.timing = {}
         return self.stats
 
