@@ -61,12 +61,14 @@ def test_compiled_step_reproduces_the_general_step_bit_for_bit(domains):
     assert np.abs(compiled.vertex_positions() - x0).max() > 1e-3           # the beam moved
 
 
-def test_compiled_step_of_a_free_spinning_body():
+@pytest.mark.parametrize("gravity", [0.0, -9.81])
+def test_compiled_step_of_a_free_spinning_body(gravity):
     """No pins: the step relative to the mean rigid motion, the Coriolis flow, the carried
-    frames and the angular momentum balance after the kernel (docs/method.md §9.4)."""
+    frames and the angular momentum balance after the kernel (docs/method.md §9.4), in
+    free space and falling."""
     scene = beam(3, modes=8)
     scene["pins"] = []
-    scene["gravity"] = [0.0, 0.0, 0.0]
+    scene["gravity"] = [0.0, 0.0, gravity]
     compiled, general = _pair(scene)
     for sim in (compiled, general):
         sim.model.set_rigid_velocity([0.1, 0.0, 0.0], [0.0, 2.0, 1.0])
@@ -76,6 +78,26 @@ def test_compiled_step_of_a_free_spinning_body():
     assert a.stats["angular_momentum_correction"] == b.stats["angular_momentum_correction"] > 0.0
     for name in ("c", "R", "v", "w"):
         assert np.array_equal(getattr(a.frames, name), getattr(b.frames, name)), name
+
+
+def test_a_compiled_step_leaves_the_start_state_as_it_was():
+    """The stability guard's snapshot shares the state's arrays (get_state(share=True)):
+    a step must replace them, never write into them, or a rollback restores the new state."""
+    scene = beam(3)
+    scene["pins"] = []
+    compiled = Simulator(scene)
+    compiled.model.set_rigid_velocity([0.1, 0.0, 0.0], [0.0, 2.0, 1.0])
+    compiled.step(3)
+    model = compiled.model
+    start = model.get_state(share=True)
+    copies = {"q": start["q"].copy(), "qd": start["qd"].copy(),
+              **{name: getattr(start["frames"], name).copy() for name in ("c", "R", "v", "w", "w_prev")}}
+    compiled.step()
+    assert model.stats["solve_ms"] == 0.0
+    assert not np.array_equal(model.q, copies["q"])                    # the state moved on
+    assert np.array_equal(start["q"], copies["q"]) and np.array_equal(start["qd"], copies["qd"])
+    for name in ("c", "R", "v", "w", "w_prev"):
+        assert np.array_equal(getattr(start["frames"], name), copies[name]), name
 
 
 def _contact_pair(scene, steps):
@@ -116,6 +138,7 @@ def test_compiled_step_with_the_guard_and_its_energy_ledger():
     """Through the Simulator's stability guard (on by default) the runs' guard reports match too."""
     compiled, general = _pair(beam(3, modes=8))
     _step_both(compiled, general, 40, lambda k: (0.0, 0.0, -20.0 if k < 20 else 0.0))
+    assert compiled.model.stats["solve_ms"] == 0.0 and general.model.stats["solve_ms"] > 0.0
     for key in ("stability", "energy_growth", "guard_work"):
         assert compiled.stats()[key] == general.stats()[key], key
 
@@ -140,8 +163,13 @@ def test_a_system_that_is_not_positive_definite_goes_the_general_way(monkeypatch
     compiled.model.step(np.zeros((len(compiled.model.body.vertices), 3)), compiled.gravity)
     general.model.step(np.zeros((len(general.model.body.vertices), 3)), general.gravity)
     assert calls == [None]
-    assert compiled.model.stats["indefinite_system"] and general.model.stats["indefinite_system"]
-    assert np.array_equal(compiled.model.q, general.model.q)
+    a, b = compiled.model, general.model
+    assert a.stats["indefinite_system"] and b.stats["indefinite_system"]
+    assert np.array_equal(a.q, b.q) and np.array_equal(a.qd, b.qd)
+    for name in ("c", "R", "v", "w", "w_prev"):
+        assert np.array_equal(getattr(a.frames, name), getattr(b.frames, name)), name
+    assert {k: v for k, v in a.stats.items() if not k.endswith("_ms")} == \
+        {k: v for k, v in b.stats.items() if not k.endswith("_ms")}
 
 
 def test_the_dependency_stamp_follows_the_linked_kernels():

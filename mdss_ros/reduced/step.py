@@ -187,7 +187,9 @@ class Step:
     def _report(self, t0, iterations, residual_ratio, external_work, contact_work=0.0, contact_s=0.0, cuts=0,
                 damped=0, stalled=""):
         """self.stats of the step that started at t0 (perf_counter s), from its phase times
-        (self.timing) and the values given."""
+        (self.timing: domain, coupling, factor and solve ms; the compiled linear step puts
+        its kernels' whole time in factor_ms, docs/performance.md "Measuring") and the
+        values given."""
         self.stats = {"newton_iterations": iterations, "residual": residual_ratio, "external_work": external_work,
                       "contact_work": contact_work,
                       "contact_ms": 1e3 * contact_s,      # candidate search, rows, LCP (inside model_ms)
