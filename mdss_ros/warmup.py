@@ -8,9 +8,9 @@ runs this module once after installing, with a progress line, so the cost is pai
 the user expects to wait and is never paid again.
 
 It steps three tiny models through the code paths a scene uses: a full-space model, a
-reduced multi-domain model with cubature and a meshless model, each pressed by a sphere
-collider, with the stability guard on (and the reduced one once more without the
-collider), then queries a mesh collider's grid. Nothing is cached but the kernels (the precompute cache is off).
+reduced multi-domain model with cubature and a meshless model, each pressed by a rough
+sphere collider, with the stability guard on (and a reduced one without the collider,
+and one resting on a rough floor), then queries a mesh collider's grid. Nothing is cached but the kernels (the precompute cache is off).
 
     python -m mdss_ros.warmup          # prints one line per model and the time taken
 """
@@ -24,7 +24,8 @@ def _scene_overrides(kind):
         "body.mesh.cell": 0.05,
         "body.mesh.size": [0.4, 0.1, 0.1],
         "handles.tip.box": [[0.399, -1, -1], [0.401, 1, 1]],
-        "colliders": {"ball": {"shape": "sphere", "radius": 0.05, "position": [0.3, 0.05, 0.1505]}},   # 0.5 mm clear
+        # 0.5 mm clear, rough: the frictional contact's kernels compile too.
+        "colliders": {"ball": {"shape": "sphere", "radius": 0.05, "position": [0.3, 0.05, 0.1505], "friction": 0.5}},
         "model.kind": kind,
     }
     if kind == "reduced":
@@ -60,6 +61,12 @@ def warm(kinds=("full", "reduced", "meshless"), say=print):
             alone = Simulator("cantilever", overrides=dict(_scene_overrides(kind), colliders={}),
                              cache=PrecomputeCache(enabled=False))
             alone.step()
+            # A block resting on a rough floor: vertex contacts with friction take the
+            # compiled rows and Coulomb solve (reduced/frictional_kernel.py), from the
+            # second step in contact (a warm start).
+            from .verify.friction_study import REDUCED, incline
+            resting = Simulator(incline(20.0, REDUCED), cache=PrecomputeCache(enabled=False))
+            resting.step(3)
         times[kind] = time.perf_counter() - t0
         say(f"  {kind} model kernels ready ({times[kind]:.1f} s)")
     # A mesh collider's grid query (contact/mesh_sdf.py), with and without normals: no

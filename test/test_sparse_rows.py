@@ -161,9 +161,22 @@ def test_frictional_rows_build_only_what_the_solve_reads():
     model = sim.model
     gm = model._global_motion(model._inertia_of(model.q))
     assert gm is not None
-    spec = sim._contact_spec()
-    lazy = model._contact_rows(spec, gm, model.dt)[5]
-    every = model._contact_rows(spec, gm, model.dt)[5]
+    # The corner rows (ContactRows._corner_rows, which face contacts and full-space bodies
+    # take) of the step's candidates; _contact_rows builds every row of a body of subspace
+    # domains for the compiled solve (test_frictional_kernel.py).
+    captured = {}
+    orig = type(model)._vertex_friction_rows
+
+    def spy(self, *args):
+        captured["args"] = args
+        return orig(self, *args)
+    type(model)._vertex_friction_rows = spy
+    try:
+        model._contact_rows(sim._contact_spec(), gm, model.dt)
+    finally:
+        type(model)._vertex_friction_rows = orig
+    lazy = model._corner_rows(*captured["args"])[5]
+    every = model._corner_rows(*captured["args"])[5]
     m, n = len(lazy.mu), lazy.C.shape[1]
     every.ensure(np.arange(m))
     rng = np.random.default_rng(3)

@@ -85,17 +85,17 @@ def _coefficient(where, value):
 def tangent_basis(normals):
     """Two unit tangents (k, 2, 3) orthogonal to unit normals (k, 3) and to each other,
     right-handed (t1 x t2 = n); t1 is n crossed with the world axis least aligned with n
-    (the first of them on a tie, as argmin). Compiled (_tangent_kernel): its numpy form (an
+    (the first of them on a tie, as argmin). Compiled (tangent_kernel): its numpy form (an
     argmin, two crosses, a norm and a stack) took 33 us for the incline's 30 contacts, this
     1.8 us (min of 3,000; session 22)."""
     n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     out = np.empty((len(n), 2, 3))
-    _tangent_kernel(n, out)
+    tangent_kernel(n, out)
     return out
 
 
 @njit(cache=True)
-def _tangent_kernel(n, out):
+def tangent_kernel(n, out):
     """tangent_basis's loop: n (k, 3), out (k, 2, 3) written. The same operations in the
     same order as the numpy form it replaced (n x e_axis, divided by its norm, then n x t1)."""
     for i in range(n.shape[0]):
@@ -608,7 +608,7 @@ def solve_proximal(W, g, mu, lam0=None, tol=1e-12, shift=None, rounds=PROXIMAL_R
 
 def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
     """solve_proximal's rounds on W + eps I (W a Gram matrix, lam0 (m, 3) the first
-    centre) in one compiled call (_proximal_kernel), when every round's Newton ends
+    centre) in one compiled call (proximal_kernel), when every round's Newton ends
     converged, which a warm-started step's does unless its contact set changes; None
     otherwise (a singular Newton system or an unconverged round: the caller then runs
     the rounds in Python from the start, with solve_coulomb's Gauss-Seidel and
@@ -625,7 +625,7 @@ def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
     mu = mu if (isinstance(mu, np.ndarray) and mu.shape == (m,) and mu.dtype == f64 and mu.flags.c_contiguous) \
         else np.ascontiguousarray(np.broadcast_to(np.asarray(mu, dtype=f64), (m,)))
     stick = np.empty(m, dtype=np.bool_)
-    lam, k, it, cuts, merit, f_scale, ok = _proximal_kernel(
+    lam, k, it, cuts, merit, f_scale, ok = proximal_kernel(
         np.ascontiguousarray(W, dtype=f64), np.ascontiguousarray(g, dtype=f64), mu,
         np.ascontiguousarray(np.asarray(lam0, dtype=f64).reshape(m, 3)), eps, tol, rounds,
         NEWTON_FIRST, UNCONVERGED, stick)
@@ -638,7 +638,7 @@ def _proximal_compiled(W, g, mu, lam0, eps, tol, rounds):
 
 
 @njit(cache=True)
-def _proximal_kernel(W, g, mu, lam0, eps, tol, rounds, max_iterations, unconverged, stick):
+def proximal_kernel(W, g, mu, lam0, eps, tol, rounds, max_iterations, unconverged, stick):
     """_proximal_rounds compiled from a warm start lam0 (m, 3): Ws = W + eps I, rho =
     _rho(Ws), and round k runs _newton_kernel on Ws and g - eps centre from the centre,
     which the round's answer replaces. Returns (lam (m, 3), rounds, the last round's

@@ -22,6 +22,7 @@ from ..contact.friction import (FrictionRows, coefficients, collider_slip, effec
 from ..contact.unilateral import (HalfSweepSolves, Solves, contact_correction, find_contacts,
                                   find_triangle_contacts, member)
 from ..rotations import cross
+from .frictional_kernel import compiled_correction, vertex_rows_kernel
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
 
@@ -73,6 +74,27 @@ class FrictionalRows:
         self.rigid3 = np.zeros((m, 3))
         self.rigid3[:, 0] = model._contact_rigid
         self.guess = None
+
+    @classmethod
+    def built(cls, model, C, mu, slip_at, dt, rows3, tangents, g3, rigid3):
+        """Rows with every contact's three rows already built (ContactRows._vertex_friction_rows):
+        rows3 the (3m, n_gen) rows in contact order, tangents (m, 2, 3), g3 (m, 3) their
+        constant parts without the colliders' own slip, which is added here, rigid3 (m, 3)."""
+        self = cls.__new__(cls)
+        m = len(g3)
+        self.model, self.C, self.mu, self.slip_at, self.dt = model, C, mu, slip_at, dt
+        self.rigid_v = self.dent_shift = None                  # read by ensure() only, which has nothing to build
+        self.g_n = g3[:, 0].copy()
+        self.corners = None
+        self.slot = np.arange(m, dtype=np.int64)
+        self.n_built = m
+        self.rows3, self.tangents, self.g3, self.rigid3 = rows3, tangents, g3, rigid3
+        self.moving = moving_colliders(slip_at[0])
+        if self.moving:
+            spec, which, points = slip_at
+            g3[:, 1:] = collider_slip(spec, which, points, tangents, self.moving) + rigid3[:, 1:]
+        self.guess = None
+        return self
 
     def ensure(self, contacts, tangents=None):
         """Build the rows of those of contacts (k,) (distinct indices) not yet built;
@@ -198,6 +220,22 @@ class ContactRows:
         if len(rows) == 0:
             return None
         rough = coefficients(contact, which) is not None    # else frictionless: one row per contact
+        if rough and self.compliance is None and not self.F and len(rows) == len(phi):
+            return self._vertex_friction_rows(contact, ids, x, rows, which, phi, normals, weights, group, key, gm, dt)
+        found = self._corner_rows(contact, ids, x, rows, which, phi, normals, weights, group, key, gm, dt, rough)
+        if found is not None and found[5] is not None and not self.F:
+            # Every contact's three rows: the compiled Coulomb solve (frictional_kernel.py)
+            # grows its working set from them. A full-space body's CSR rows are built for
+            # its working set only, which the Python solve asks for.
+            found[5].ensure(np.arange(len(found[0])))
+        return found
+
+    def _corner_rows(self, contact, ids, x, rows, which, phi, normals, weights, group, key, gm, dt, rough=True):
+        """_contact_rows' answer from the candidates' corner rows: ids (n_s,) the searched
+        vertices at x (n_s, 3); rows (k,) the candidates' corners (rows of ids), with which,
+        normals (k, 3) and weights (k,) per corner and group (k,) its contact (phi (c,) per
+        contact); key (c,) the contacts' identities; rough: some collider has friction.
+        Any body: face contacts, full-space domains, residual compliance."""
         verts = ids[rows]
         xv = x[rows]
         # group is non-decreasing (vertex rows, then three corners per face): one contact per run.
@@ -282,6 +320,53 @@ class ContactRows:
                 fric.ensure(np.flatnonzero(match[0]))
                 fric.guess = warm_start(self.contact, keys, fric.tangents, n_col, match)
         return verts, C, phi_eff, normals, which, fric
+
+    def _vertex_friction_rows(self, contact, ids, x, near, which, phi, normals, weights, group, key, gm, dt):
+        """_contact_rows' answer for vertex candidates on a body of subspace domains without
+        residual compliance (the rows of every contact in one compiled call,
+        frictional_kernel.vertex_rows_kernel, for the compiled Coulomb solve): the same
+        rows, gaps and first guess as _corner_rows (test_frictional_kernel.py), which
+        takes about 40 numpy calls for them: 0.099 -> 0.049 ms on the reduced incline's 48
+        candidates, 0.24 -> 0.25 on the caterpillar's 814, whose every row this builds
+        against the working set's there (min of 300 calls, docs/performance.md "Session
+        30"). ids (n_s,) the searched vertices at x (n_s, 3);
+        near, which, phi, normals: find_contacts' candidates (one corner each: weights and
+        group, _corner_rows' arguments, are not read); key (k,) their row keys."""
+        L, k = self.layout, len(near)
+        w = L.U.shape[2] + 6
+        keep, tangents = np.empty(k, dtype=np.int64), np.empty((k, 2, 3))
+        cols, vals, count = np.empty((3 * k, w), dtype=np.int64), np.empty((3 * k, w)), np.empty(3 * k, dtype=np.int64)
+        g3, rigid3 = np.empty((k, 3)), np.empty((k, 3))
+        C, V, W = (np.zeros(3),) * 3 if gm is None else (np.asarray(a, dtype=np.float64) for a in gm[:3])
+        near = np.ascontiguousarray(near, dtype=np.int64)
+        m = vertex_rows_kernel(near, np.ascontiguousarray(ids[near], dtype=np.int64), np.ascontiguousarray(phi, dtype=np.float64),
+                               np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(x, dtype=np.float64),
+                               L.U, L.row_domain, L.vertex_row, self.frames.R, self.frames.c, L.q_index, L.mask,
+                               self._frame_cols, float(dt), gm is not None, C, V, W, keep, tangents, cols, vals, count,
+                               g3, rigid3)
+        if m == 0:
+            return None
+        keep = keep[:m]
+        if m < k:
+            near, which, normals, key = near[keep], which[keep], normals[keep], key[keep]
+            cols, vals, count = cols[:3 * m], vals[:3 * m], count[:3 * m]
+            tangents, g3, rigid3 = tangents[:m], g3[:m], rigid3[:m]
+        verts, xv = ids[near], x[near]
+        rows3 = ContactRowEntries(cols, vals, count, self.n_gen)
+        C = rows3.take(np.arange(0, 3 * m, 3))
+        self._contact_rigid = rigid3[:, 0].copy()
+        self._contact_row_keys = key
+        self._contact_at = near
+        self._contact_compliance = None
+        self._dent_cap = contact["margin"]
+        n_col = len(contact["colliders"])
+        keys = verts * n_col + which
+        fric = FrictionalRows.built(self, C, effective_mu(*coefficients(contact, which), keys, self.contact, n_col),
+                                    (contact, which, xv), dt, rows3, tangents, g3, rigid3)
+        match = previous_match(self.contact, keys, n_col)
+        if match is not None:
+            fric.guess = warm_start(self.contact, keys, tangents, n_col, match)
+        return verts, C, g3[:, 0].copy(), normals, which, fric
 
     def _rows_along(self, dirs, verts, xv, starts, dt):
         """Constraint rows (m r, n_gen), row l r + j = dt d^T J at contact l along its j-th
@@ -373,6 +458,10 @@ class ContactRows:
             rows3, mu = friction.at(Q + dQ), friction.mu
 
             def solve(compliance):
+                if compliance is None and self._factor is not None:
+                    done = compiled_correction(friction, Q + dQ, guess, self._factor)
+                    if done is not None:
+                        return done
                 return frictional_correction(resolve, rows3, None, mu, regularize=1e-9,
                                              hint=hint if guess is None else None, lam_guess=guess,
                                              compliance=compliance)
