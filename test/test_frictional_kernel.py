@@ -235,3 +235,32 @@ def test_steps_match_the_python_contact_path(case):
         c = _sim(case)
         _run_python(c, case, 100, rows=False)
         np.testing.assert_array_equal(c.vertex_positions(), xb)
+
+
+@pytest.mark.parametrize("case", ["stick", "slide", "conveyor"])
+def test_compiled_contact_record_is_contact_forces(case):
+    """_frictional_record (compiled) gives the record fem/backward_euler.contact_forces
+    gives for the same answer, and the work FrictionalRows.work does (to round-off)."""
+    from mdss_ros.fem.backward_euler import contact_forces
+    sim = _sim(case)
+    _advance(sim, case, 30)
+    m = sim.model
+    rows, lam, w = m._contact_rows_seen, m._contact_lam, m._contact_info["w"]
+    verts, _, _, normals, which, fr = rows
+    pts = m._contact_points(sim._contact_spec(), verts)
+    Q = np.linspace(-1e-2, 1e-2, m.n_gen)
+    work = m._frictional_record(sim._contact_spec(), rows, lam, w, pts, Q, m.dt)
+    got = m.contact
+    depth = np.zeros(len(verts))
+    on = lam[:, 0] > 0
+    depth[on] = np.maximum(-sim.colliders["floor"].signed_distance(pts[on])[0], 0.0)
+    ref = contact_forces(verts, normals, which, lam, fr.tangents, pts, depth, w, m.dt)
+    assert list(got) == list(ref) and len(got["vertices"]) >= 4
+    for key in ref:
+        if key in ("forces", "friction", "slip_speed", "depth"):
+            np.testing.assert_allclose(got[key], ref[key], rtol=1e-14, atol=1e-14 * np.abs(ref[key]).max())
+        else:
+            np.testing.assert_array_equal(got[key], ref[key])
+    ref_work = fr.work(lam, Q)
+    assert ref_work != 0.0
+    np.testing.assert_allclose(work, ref_work, rtol=1e-12)

@@ -291,3 +291,34 @@ def compiled_correction(rows, v, guess, factor, tol=1e-12, max_rounds=50):
         return lam, corr, {"rows": m, "working_set": 0, "rounds": 0, "active": 0, "stick": 0, "slip": 0}
     out = {"rows": m, **{key: int(val) for key, val in zip(INFO, info)}, "w": w, "unconverged": False}
     return lam, corr, out
+
+
+@njit(cache=True)
+def record_kernel(lam, normals, tangents, w, dt, cols, vals, count, slot, rigid3, Q, active, forces, friction, slip):
+    """The contact record of a step's Coulomb answer (fem/backward_euler.contact_forces,
+    and FrictionalRows.work): lam (m, 3), normals (m, 3), tangents (m, 2, 3), w (m, 3)
+    the solve's gaps and slips, the rows' entries (3 per contact at 3 slot + j) with their
+    rigid shares rigid3 (m, 3), Q (S,) the step's velocities. Writes, for the n contacts
+    with lam_n > 0 (returned first): active[:n] their indices, forces[:n] (normal plus
+    friction, on the body), friction[:n] lam_t1 t1 + lam_t2 t2 and slip[:n] |w_t| / dt;
+    returns (n, the work lam . (C3 Q + rigid3) of every contact with a force)."""
+    m = lam.shape[0]
+    n = 0
+    work = 0.0
+    for i in range(m):
+        if lam[i, 0] != 0.0 or lam[i, 1] != 0.0 or lam[i, 2] != 0.0:
+            for j in range(3):
+                o = 3 * slot[i] + j
+                acc = 0.0
+                for t in range(count[o]):
+                    acc += vals[o, t] * Q[cols[o, t]]
+                work += lam[i, j] * (acc + rigid3[i, j])
+        if lam[i, 0] > 0.0:
+            active[n] = i
+            for j in range(3):
+                f = lam[i, 1] * tangents[i, 0, j] + lam[i, 2] * tangents[i, 1, j]
+                friction[n, j] = f
+                forces[n, j] = lam[i, 0] * normals[i, j] + f
+            slip[n] = np.sqrt(w[i, 1] * w[i, 1] + w[i, 2] * w[i, 2]) / dt
+            n += 1
+    return n, work
