@@ -221,7 +221,8 @@ class ContactRows:
             return None
         rough = coefficients(contact, which) is not None    # else frictionless: one row per contact
         if rough and self.compliance is None and not self.F and len(rows) == len(phi):
-            return self._vertex_friction_rows(contact, ids, x, rows, which, phi, normals, weights, group, key, gm, dt)
+            return self._vertex_friction_rows(contact, ids, x, rows, which, phi, normals, weights, group, key, gm,
+                                              dt)
         found = self._corner_rows(contact, ids, x, rows, which, phi, normals, weights, group, key, gm, dt, rough)
         if found is not None and found[5] is not None and not self.F:
             # Every contact's three rows: the compiled Coulomb solve (frictional_kernel.py)
@@ -335,15 +336,17 @@ class ContactRows:
         L, k = self.layout, len(near)
         w = L.U.shape[2] + 6
         keep, tangents = np.empty(k, dtype=np.int64), np.empty((k, 2, 3))
-        cols, vals, count = np.empty((3 * k, w), dtype=np.int64), np.empty((3 * k, w)), np.empty(3 * k, dtype=np.int64)
+        cols, vals = np.empty((3 * k, w), dtype=np.int64), np.empty((3 * k, w))
+        count = np.empty(3 * k, dtype=np.int64)
         g3, rigid3 = np.empty((k, 3)), np.empty((k, 3))
         C, V, W = (np.zeros(3),) * 3 if gm is None else (np.asarray(a, dtype=np.float64) for a in gm[:3])
         near = np.ascontiguousarray(near, dtype=np.int64)
-        m = vertex_rows_kernel(near, np.ascontiguousarray(ids[near], dtype=np.int64), np.ascontiguousarray(phi, dtype=np.float64),
-                               np.ascontiguousarray(normals, dtype=np.float64), np.ascontiguousarray(x, dtype=np.float64),
-                               L.U, L.row_domain, L.vertex_row, self.frames.R, self.frames.c, L.q_index, L.mask,
-                               self._frame_cols, float(dt), gm is not None, C, V, W, keep, tangents, cols, vals, count,
-                               g3, rigid3)
+        f64 = np.float64
+        m = vertex_rows_kernel(near, np.ascontiguousarray(ids[near], dtype=np.int64),
+                               np.ascontiguousarray(phi, dtype=f64), np.ascontiguousarray(normals, dtype=f64),
+                               np.ascontiguousarray(x, dtype=f64), L.U, L.row_domain, L.vertex_row, self.frames.R,
+                               self.frames.c, L.q_index, L.mask, self._frame_cols, float(dt), gm is not None, C, V, W,
+                               keep, tangents, cols, vals, count, g3, rigid3)
         if m == 0:
             return None
         keep = keep[:m]

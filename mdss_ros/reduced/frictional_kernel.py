@@ -22,15 +22,16 @@ written that the caller keeps) whatever frictional_correction would hand to its 
 fallbacks: a round whose Newton system is singular or unconverged (the proximal kernel's
 ok), or a working set still growing after max_rounds. The caller then runs
 frictional_correction. The answer equals frictional_correction's to round-off, not bit
-for bit: W = Z^T Z is summed here in column order, there by BLAS (test_frictional_kernel.py).
+for bit: W = Z^T Z is numba's BLAS product of Z^T's rows here, numpy's of Z there, and
+the correction's sums run in another order (test_frictional_kernel.py).
 """
 import numpy as np
 from numba import njit
 
 from ..contact.friction import (NEWTON_FIRST, PROXIMAL_ROUNDS, PROXIMAL_SHIFT, UNCONVERGED, proximal_kernel,
                                 tangent_kernel)
-from .block_cholesky import backward_blocks, forward_blocks
-from .sparse_rows import row_entries_kernel
+from .block_cholesky import BlockCholesky, backward_blocks, forward_blocks
+from .sparse_rows import ContactRowEntries, row_entries_kernel
 
 #: Entries of the kernel's info array (ints): working set size, rounds of the working
 #: set, contacts with a force, of them sticking, slipping, and the last proximal
@@ -48,9 +49,10 @@ def vertex_rows_kernel(near, verts, phi, normals, x, U, row_domain, vertex_row, 
     vertex: 1e-12 of the largest row's norm, as _contact_rows) cannot be pushed out and is
     dropped. Writes, for the m kept (returned): keep[:m] their candidate indices,
     tangents[:m] (friction.tangent_basis), the rows' entries at 3 a + (0, 1, 2)
-    (row_entries_kernel; cols, vals (3k, w) need no zeroing, count is zeroed here), g3[:m] the rows' constant parts (phi plus
-    the rigid share; the tangential rows' collider slip is the caller's) and rigid3[:m]
-    the rigid share dt d . (V + W x (x - C)) of a co-rotating step (moving; else zero)."""
+    (row_entries_kernel; cols, vals (3k, w) need no zeroing, count is zeroed here),
+    g3[:m] the rows' constant parts (phi plus the rigid share; the tangential rows'
+    collider slip is the caller's) and rigid3[:m] the rigid share dt d . (V + W x (x - C))
+    of a co-rotating step (moving; else zero)."""
     k = near.shape[0]
     t_all = np.empty((k, 2, 3))
     tangent_kernel(normals, t_all)
@@ -208,8 +210,9 @@ def frictional_kernel(cols, vals, count, slot, g3, v, mu, guess, L, perm, po, la
         for a in range(k):
             mu_w[a] = mu[work[a]]
         stick = np.empty(k, dtype=np.bool_)
-        lam_w, _k, it, _cuts, _merit, _f, ok = proximal_kernel(W, g_w[:n].copy(), mu_w, lam0[:k].copy(), PROXIMAL_SHIFT * diag,
-                                                     tol, PROXIMAL_ROUNDS, NEWTON_FIRST, UNCONVERGED, stick)
+        lam_w, _k, it, _cuts, _merit, _f, ok = proximal_kernel(W, g_w[:n].copy(), mu_w, lam0[:k].copy(),
+                                                                PROXIMAL_SHIFT * diag, tol, PROXIMAL_ROUNDS,
+                                                                NEWTON_FIRST, UNCONVERGED, stick)
         if not ok:
             return -1
         # The correction P^T L^-T Z lam_w, and every contact's gap under it.
@@ -274,7 +277,8 @@ def compiled_correction(rows, v, guess, factor, tol=1e-12, max_rounds=50):
     block_cholesky.BlockCholesky."""
     m = len(rows.g_n)
     entries = rows.rows3
-    if guess is None or m == 0 or rows.n_built != m or not hasattr(entries, "vals"):
+    if (guess is None or m == 0 or rows.n_built != m or not isinstance(entries, ContactRowEntries)
+            or not isinstance(factor, BlockCholesky)):
         return None
     S = len(v)
     lam, corr, w = np.empty((m, 3)), np.empty(S), np.empty((m, 3))
