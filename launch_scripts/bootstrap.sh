@@ -57,7 +57,7 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$venv/.mdss_stamp" 2>/dev/null)" != 
   quiet "$venv/bin/python" -m pip install -q --no-deps -e "$root" || die "installing mdss_ros itself failed"
   # numba compiles each kernel on first use; doing it here (cached in the venv) keeps that
   # cost out of the user's first scene, where it looked like a hang (mdss_ros/warmup.py).
-  echo "mdss bootstrap: [3/4] compiling the numba kernels once into $venv/numba_cache (1-3 minutes on 2 cores; a line per model)" >&2
+  echo "mdss bootstrap: [3/4] compiling the numba kernels once into $venv/numba_cache (2-4 minutes on 2 cores; a line per model)" >&2
   # Its progress lines go to the terminal (stderr: stdout carries the python path back),
   # unbuffered so a log shows them as they come: silent, this step looked like a hang.
   env PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR="${NUMBA_CACHE_DIR:-$venv/numba_cache}" "$venv/bin/python" -m mdss_ros.warmup >&2 \
