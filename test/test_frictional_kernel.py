@@ -15,10 +15,12 @@ from mdss_ros.verify import friction_study as fs
 
 
 def _sim(case):
-    """A reduced block on a rough floor: tilted 20 degrees (sticks), 35 (slides), or flat
-    with the floor moving along x under it (a conveyor: the collider's own slip)."""
-    theta = {"stick": 20.0, "slide": 35.0, "conveyor": 0.0}[case]
-    return Simulator(fs.incline(theta, fs.REDUCED))
+    """A reduced block on a rough floor: tilted 20 degrees (sticks), 35 (slides; "kinetic":
+    static 0.6, kinetic 0.4), or flat with the floor moving along x under it (a conveyor:
+    the collider's own slip)."""
+    theta = {"stick": 20.0, "slide": 35.0, "kinetic": 35.0, "conveyor": 0.0}[case]
+    friction = {"static": 0.6, "kinetic": 0.4} if case == "kinetic" else 0.5
+    return Simulator(fs.incline(theta, fs.REDUCED, friction))
 
 
 def _advance(sim, case, steps):
@@ -144,7 +146,7 @@ def test_compiled_coulomb_solve_declines_what_it_does_not_handle(monkeypatch):
     assert compiled_correction(rows, v, guess, factor) is None
 
 
-@pytest.mark.parametrize("case", ["stick", "slide", "conveyor"])
+@pytest.mark.parametrize("case", ["stick", "slide", "kinetic", "conveyor"])
 def test_vertex_rows_are_the_corner_rows(case):
     """_vertex_friction_rows (compiled) builds the rows, gaps, tangents, coefficients and
     warm start _corner_rows builds for the same candidates: the rows to the bit (the same
@@ -176,6 +178,9 @@ def test_vertex_rows_are_the_corner_rows(case):
     np.testing.assert_allclose(fr.g3, fr_g.g3, rtol=0, atol=1e-14 * max(scale, np.abs(fr_g.g3).max()))
     np.testing.assert_allclose(fr.rigid3, fr_g.rigid3, rtol=0, atol=1e-14 * max(np.abs(fr_g.rigid3).max(), 1e-300))
     np.testing.assert_array_equal(fr.guess, fr_g.guess)
+    if case == "kinetic":         # the contacts that slid in the last step: the kinetic coefficient
+        slid = fr.guess[:, 0] > 0
+        assert slid.sum() >= 4 and np.all(fr.mu[slid] == 0.4) and np.all(fr.mu[~slid] == 0.6)
     if case == "conveyor":
         # The floor's own slip is in the rows (0.2 m/s dt; the block, carried at the floor's
         # speed, has the opposite rigid share).

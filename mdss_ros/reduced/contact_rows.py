@@ -17,12 +17,13 @@ import scipy.sparse as sp
 
 # Imported at module level: contact_rows already imports these modules, and a function's
 # import statement costs microseconds a call on a step of a few hundred.
-from ..contact.friction import (FrictionRows, coefficients, collider_slip, effective_mu, frictional_correction,
-                                moving_colliders, previous_match, rows_of, tangent_basis, warm_start)
+from ..contact.friction import (STICTION_SPEED, FrictionRows, coefficients, collider_slip, effective_mu,
+                                frictional_correction, moving_colliders, previous_match, rows_of, tangent_basis,
+                                warm_start)
 from ..contact.unilateral import (HalfSweepSolves, Solves, contact_correction, find_contacts,
                                   find_triangle_contacts, member)
 from ..rotations import cross
-from .frictional_kernel import compiled_correction, vertex_rows_kernel
+from .frictional_kernel import compiled_correction, vertex_rows_kernel, warm_kernel
 from .residual_compliance import limit_dent
 from .sparse_rows import ContactRowEntries
 
@@ -364,11 +365,24 @@ class ContactRows:
         self._dent_cap = contact["margin"]
         n_col = len(contact["colliders"])
         keys = verts * n_col + which
-        fric = FrictionalRows.built(self, C, effective_mu(*coefficients(contact, which), keys, self.contact, n_col),
-                                    (contact, which, xv), dt, rows3, tangents, g3, rigid3)
-        match = previous_match(self.contact, keys, n_col)
-        if match is not None:
-            fric.guess = warm_start(self.contact, keys, tangents, n_col, match)
+        mu_s, mu_k = coefficients(contact, which)
+        prev, guess = self.contact, None
+        if prev is None or "slip_speed" not in prev:
+            mu = mu_s
+        else:
+            # effective_mu, previous_match and warm_start in one pass (frictional_kernel.warm_kernel).
+            mu, guess = np.empty(m), np.empty((m, 3))
+            i64, f64 = np.int64, np.float64
+            found = warm_kernel(np.ascontiguousarray(keys, dtype=i64), tangents, mu_s, mu_k,
+                                np.ascontiguousarray(prev["vertices"], dtype=i64) * n_col
+                                + np.ascontiguousarray(prev["which"], dtype=i64),
+                                np.ascontiguousarray(prev["slip_speed"], dtype=f64),
+                                np.ascontiguousarray(prev["normal_force"], dtype=f64),
+                                np.ascontiguousarray(prev["friction"], dtype=f64), STICTION_SPEED,
+                                bool(np.any(mu_k < mu_s)), mu, guess)
+            guess = guess if found else None
+        fric = FrictionalRows.built(self, C, mu, (contact, which, xv), dt, rows3, tangents, g3, rigid3)
+        fric.guess = guess
         return verts, C, g3[:, 0].copy(), normals, which, fric
 
     def _rows_along(self, dirs, verts, xv, starts, dt):

@@ -326,3 +326,39 @@ def record_kernel(lam, normals, tangents, w, dt, cols, vals, count, slot, rigid3
             slip[n] = np.sqrt(w[i, 1] * w[i, 1] + w[i, 2] * w[i, 2]) / dt
             n += 1
     return n, work
+
+
+@njit(cache=True)
+def warm_kernel(keys, tangents, mu_s, mu_k, prev_keys, prev_slip, prev_normal, prev_friction, stiction, kinetic,
+                mu, guess):
+    """friction.effective_mu, previous_match and warm_start in one pass, for contacts keys
+    (m,) (vertex id x colliders + collider) with tangents (m, 2, 3) and coefficients mu_s,
+    mu_k (m,), against the last step's record: its keys (p,), slip_speed, normal_force
+    (p,) and friction (p, 3). Writes mu (m,) (mu_k where the same contact slid faster than
+    stiction, when kinetic: some mu_k < mu_s) and guess (m, 3) (the last forces in this
+    step's directions, zero for a new contact); returns how many contacts were found. A
+    repeated previous key maps to its last place, as previous_match's table."""
+    top = 0
+    for i in range(keys.shape[0]):
+        top = max(top, keys[i])
+    for i in range(prev_keys.shape[0]):
+        top = max(top, prev_keys[i])
+    table = np.full(top + 1, -1, dtype=np.int64)
+    slid = np.zeros(top + 1, dtype=np.bool_)
+    for i in range(prev_keys.shape[0]):
+        table[prev_keys[i]] = i
+        if kinetic and prev_slip[i] > stiction:
+            slid[prev_keys[i]] = True
+    n = 0
+    for i in range(keys.shape[0]):
+        mu[i] = mu_k[i] if slid[keys[i]] else mu_s[i]
+        j = table[keys[i]]
+        if j < 0:
+            guess[i, 0] = guess[i, 1] = guess[i, 2] = 0.0
+            continue
+        n += 1
+        guess[i, 0] = prev_normal[j]
+        for a in range(2):
+            guess[i, 1 + a] = (tangents[i, a, 0] * prev_friction[j, 0] + tangents[i, a, 1] * prev_friction[j, 1]
+                               + tangents[i, a, 2] * prev_friction[j, 2])
+    return n
