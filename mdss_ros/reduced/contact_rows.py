@@ -457,6 +457,8 @@ class ContactRows:
         lam_n = None if not same_step else (self._contact_lam if friction is None else self._contact_lam[:, 0])
         if same_step:
             hint = lam_n > 0
+        elif friction is not None and friction.guess is not None:
+            hint = None                   # a warm-started Coulomb solve starts from its guess instead
         else:
             hint = member(keys, np.concatenate(history)) if history else None
         # limit_dent solves the same contact again under a smaller compliance, and its rounds
